@@ -1,0 +1,13 @@
+"""Errors raised by the ``sensors`` package."""
+
+from __future__ import annotations
+
+__all__ = ["SensorError", "WorldError"]
+
+
+class SensorError(Exception):
+    """Base of every error the ``sensors`` package raises on bad input or device trouble."""
+
+
+class WorldError(SensorError, ValueError):
+    """A world description is invalid; the message names the file, key path and value."""

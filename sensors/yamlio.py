@@ -1,0 +1,93 @@
+"""Loading YAML documents into validated pydantic models, with one-line error messages.
+
+World files (``sensors.sim.world``) and configuration files (``estimation.config``) are both
+YAML mappings validated by a pydantic schema. Errors name the file, the key path inside the
+document and the offending value, e.g. ``grid.resolution_m: must be > 0 (got -0.1)``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+__all__ = ["format_validation_error", "read_yaml_mapping", "validate_mapping"]
+
+M = TypeVar("M", bound=BaseModel)
+
+_MESSAGES = {
+    "extra_forbidden": "unknown key",
+    "missing": "required key is missing",
+}
+
+
+def _key_path(loc: tuple[int | str, ...]) -> str:
+    parts: list[str] = []
+    for item in loc:
+        if isinstance(item, int):
+            parts.append(f"[{item}]")
+        else:
+            parts.append(("." if parts else "") + item)
+    return "".join(parts) or "(document)"
+
+
+def _short_value(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def format_validation_error(exc: ValidationError, *, prefix: str = "") -> str:
+    """One line naming each failing key path, the problem and the bad value."""
+    items = []
+    for err in exc.errors(include_url=False):
+        # Errors raised inside model validators carry the model's own path; their message
+        # names the fields involved.
+        loc = tuple(part for part in err["loc"] if part != "__root__")
+        message = _MESSAGES.get(err["type"], err["msg"])
+        message = message.removeprefix("Value error, ")
+        text = f"{_key_path(loc)}: {message}" if loc else message
+        # Model-level checks name their values in the message; repeating the whole mapping
+        # they were given would bury it.
+        if err["type"] != "missing" and not isinstance(err["input"], dict):
+            text += f" (got {_short_value(err['input'])})"
+        items.append(text)
+    return prefix + "; ".join(items)
+
+
+def read_yaml_mapping(path: Path, error: type[Exception]) -> dict[str, Any]:
+    """Read a YAML file whose top level must be a mapping; raise ``error`` with one clear line.
+
+    An empty file is an empty mapping.
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, expected a YAML file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"{path}: cannot read: {exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise error(f"{path}: malformed YAML{where}: {problem}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected a YAML mapping at the top level, got {type(data).__name__}")
+    return data
+
+
+def validate_mapping(
+    model: type[M], data: dict[str, Any], error: type[Exception], source: str
+) -> M:
+    """Validate ``data`` against ``model``; raise ``error`` naming ``source`` and the key paths."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise error(format_validation_error(exc, prefix=f"{source}: ")) from None
