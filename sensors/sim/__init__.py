@@ -1,0 +1,1 @@
+"""The simulator: worlds, their meshes and ray casting, ground truth, and simulated sensing."""

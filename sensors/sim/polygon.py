@@ -70,9 +70,11 @@ def find_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
                 other_a = a1 if j == i + 1 else a2
                 other_b = b2 if j == i + 1 else b1
                 u, v = other_a - shared, other_b - shared
-                if abs(u[0] * v[1] - u[1] * v[0]) <= 1e-12 * max(1.0, float(np.abs(u).max())) ** 2:
-                    if float(u @ v) > 0:
-                        return (i, j)
+                collinear = (
+                    abs(u[0] * v[1] - u[1] * v[0]) <= 1e-12 * max(1.0, float(np.abs(u).max())) ** 2
+                )
+                if collinear and float(u @ v) > 0:
+                    return (i, j)
                 continue
             if _segments_touch(a1, a2, b1, b2):
                 return (i, j)
@@ -109,14 +111,14 @@ def triangulate(polygon: np.ndarray) -> np.ndarray:
     while len(remaining) > 3:
         m = len(remaining)
         for k in range(m):
-            i, j, l = remaining[(k - 1) % m], remaining[k], remaining[(k + 1) % m]
-            a, b, c = polygon[i], polygon[j], polygon[l]
+            i, j, m_ = remaining[(k - 1) % m], remaining[k], remaining[(k + 1) % m]
+            a, b, c = polygon[i], polygon[j], polygon[m_]
             if _cross(a, b, c) <= 1e-15:
                 continue  # reflex or degenerate corner: not an ear
-            others = [v for v in remaining if v not in (i, j, l)]
+            others = [v for v in remaining if v not in (i, j, m_)]
             if others and _any_inside_triangle(polygon[others], a, b, c):
                 continue
-            triangles.append((i, j, l))
+            triangles.append((i, j, m_))
             del remaining[k]
             break
         else:
@@ -125,8 +127,8 @@ def triangulate(polygon: np.ndarray) -> np.ndarray:
                 raise ValueError("polygon could not be triangulated: is it simple and CCW?")
             # Drop a collinear vertex that blocks progress and try again.
             for k in range(m):
-                i, j, l = remaining[(k - 1) % m], remaining[k], remaining[(k + 1) % m]
-                if abs(_cross(polygon[i], polygon[j], polygon[l])) <= 1e-15:
+                i, j, m_ = remaining[(k - 1) % m], remaining[k], remaining[(k + 1) % m]
+                if abs(_cross(polygon[i], polygon[j], polygon[m_])) <= 1e-15:
                     del remaining[k]
                     break
             continue

@@ -8,6 +8,7 @@ only when a scene is built.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
@@ -116,17 +117,13 @@ def _quads(corners: np.ndarray) -> np.ndarray:
 
 def _wall_cells(length: float, height: float, holes: list[tuple[float, float, float, float]]):
     """Rectangles (s0, s1, h0, h1) covering the wall minus its openings."""
-    s_breaks = sorted(
-        {0.0, length, *(min(max(v, 0.0), length) for h in holes for v in h[:2])}
-    )
-    h_breaks = sorted(
-        {0.0, height, *(min(max(v, 0.0), height) for h in holes for v in h[2:])}
-    )
+    s_breaks = sorted({0.0, length, *(min(max(v, 0.0), length) for h in holes for v in h[:2])})
+    h_breaks = sorted({0.0, height, *(min(max(v, 0.0), height) for h in holes for v in h[2:])})
     cells = []
-    for s0, s1 in zip(s_breaks[:-1], s_breaks[1:], strict=True):
+    for s0, s1 in itertools.pairwise(s_breaks):
         if s1 - s0 <= TOLERANCE_M:
             continue
-        for h0, h1 in zip(h_breaks[:-1], h_breaks[1:], strict=True):
+        for h0, h1 in itertools.pairwise(h_breaks):
             if h1 - h0 <= TOLERANCE_M:
                 continue
             sc, hc = 0.5 * (s0 + s1), 0.5 * (h0 + h1)
@@ -148,9 +145,7 @@ def _add_room(builder: _MeshBuilder, room: Room, ceilings: bool) -> None:
         start, end = polygon[i], polygon[(i + 1) % n]
         length = float(np.linalg.norm(end - start))
         along = (end - start) / length
-        holes = [
-            (o.from_m, o.to_m, o.bottom_m, o.top_m) for o in room.openings if o.wall == i
-        ]
+        holes = [(o.from_m, o.to_m, o.bottom_m, o.top_m) for o in room.openings if o.wall == i]
         cells = _wall_cells(length, room.ceiling_m, holes)
         if not cells:
             continue
@@ -261,6 +256,32 @@ class RaycastScene:
         normal[~hit] = np.nan
         return RayHits(range_m=t_hit, surface_id=surface, normal=normal)
 
+    def height_map(
+        self,
+        lower_xy: np.ndarray,
+        upper_xy: np.ndarray,
+        resolution_m: float,
+        z_top_m: float,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Height of the first surface seen looking straight down from ``z_top_m``.
+
+        Returns (heights (H, W) with NaN where nothing was hit, surface ids (H, W), −1 there);
+        row r, column c is the cell centred at (lower_x + (c + ½)·res, lower_y + (r + ½)·res).
+        Build the scene without ceilings to see the room contents.
+        """
+        if not resolution_m > 0:
+            raise SensorError(f"resolution_m must be positive, got {resolution_m}")
+        size = np.ceil((np.asarray(upper_xy) - np.asarray(lower_xy)) / resolution_m).astype(int)
+        if np.any(size <= 0):
+            raise SensorError("height map bounds are empty")
+        xs = lower_xy[0] + (np.arange(size[0]) + 0.5) * resolution_m
+        ys = lower_xy[1] + (np.arange(size[1]) + 0.5) * resolution_m
+        gx, gy = np.meshgrid(xs, ys)
+        origins = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z_top_m)])
+        hits = self.cast(origins, np.broadcast_to([0.0, 0.0, -1.0], origins.shape))
+        heights = np.where(hits.hit, z_top_m - hits.range_m, np.nan).reshape(gx.shape)
+        return heights, hits.surface_id.reshape(gx.shape)
+
 
 def view_directions(
     azimuth_step_rad: float,
@@ -278,7 +299,7 @@ def view_directions(
     if elevation_min_rad > elevation_max_rad:
         raise SensorError("view elevation_min must not exceed elevation_max")
     azimuth = np.arange(-math.pi, math.pi - 1e-12, azimuth_step_rad)
-    count = int(math.floor((elevation_max_rad - elevation_min_rad) / elevation_step_rad + 1e-9))
+    count = math.floor((elevation_max_rad - elevation_min_rad) / elevation_step_rad + 1e-9)
     elevation = elevation_min_rad + elevation_step_rad * np.arange(count + 1)
     el, az = np.meshgrid(elevation, azimuth, indexing="ij")
     directions = np.stack(

@@ -56,11 +56,30 @@ def voxel_indices(points: np.ndarray, origin_m: np.ndarray, resolution_m: float)
     return np.floor((points - origin_m) / resolution_m + _BOUNDARY_EPS).astype(np.int64)
 
 
-def _barycentric_lattice(n: int) -> np.ndarray:
-    """(K, 2) weights (u, v) with u, v ∈ {0, 1/n, …, 1}, u + v ≤ 1."""
-    i, j = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
-    keep = i + j <= n
-    return np.column_stack([i[keep], j[keep]]).astype(float) / n
+def _lattice(n1: int, n2: int) -> np.ndarray:
+    """(K, 2) weights (u, v) = (i/n1, j/n2) with u + v ≤ 1."""
+    i, j = np.meshgrid(np.arange(n1 + 1), np.arange(n2 + 1), indexing="ij")
+    u, v = i / n1, j / n2
+    keep = u + v <= 1.0 + 1e-12
+    return np.column_stack([u[keep], v[keep]])
+
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def _pack(indices: np.ndarray) -> np.ndarray:
+    """One int64 key per (i, j, k) voxel index (each within ±2^20)."""
+    shifted = indices + _KEY_OFFSET
+    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+
+
+def _unpack(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << _KEY_BITS) - 1
+    return (
+        np.column_stack([(keys >> (2 * _KEY_BITS)) & mask, (keys >> _KEY_BITS) & mask, keys & mask])
+        - _KEY_OFFSET
+    )
 
 
 def surface_voxels(
@@ -82,28 +101,47 @@ def surface_voxels(
     triangles = mesh.triangles
     if surface_mask is not None:
         triangles = triangles[np.asarray(surface_mask, dtype=bool)[mesh.triangle_surface]]
-    a, b, c = (mesh.vertices[triangles[:, k]] for k in range(3))
-    e1, e2 = b - a, c - a
-    longest = np.max(
-        np.stack([np.linalg.norm(e1, axis=1), np.linalg.norm(e2, axis=1),
-                  np.linalg.norm(c - b, axis=1)]),
-        axis=0,
-    )
+    corners = mesh.vertices[triangles]  # (T, 3, 3)
+    # Span each triangle's lattice from its widest corner: its two edges are then as close to
+    # perpendicular as the triangle allows, which keeps the lattice small for slivers.
+    cosines = []
+    for k in range(3):
+        u = corners[:, (k + 1) % 3] - corners[:, k]
+        v = corners[:, (k + 2) % 3] - corners[:, k]
+        norms = np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1)
+        cosines.append(np.abs(np.einsum("ij,ij->i", u, v)) / np.maximum(norms, 1e-300))
+    apex = np.argmin(np.stack(cosines, axis=1), axis=1)
+    rows = np.arange(len(corners))
+    a = corners[rows, apex]
+    b = corners[rows, (apex + 1) % 3]
+    c = corners[rows, (apex + 2) % 3]
+    e1, e2, e3 = b - a, c - a, c - b
     step = resolution_m / 4.0
-    subdivisions = np.maximum(1, np.ceil(longest / step)).astype(np.int64)
 
-    found: list[np.ndarray] = []
-    for n in np.unique(subdivisions):
-        group = np.flatnonzero(subdivisions == n)
-        weights = _barycentric_lattice(int(n))
+    def count(edge: np.ndarray) -> np.ndarray:
+        return np.maximum(1, np.ceil(np.linalg.norm(edge, axis=1) / step)).astype(np.int64)
+
+    n1, n2, n3 = count(e1), count(e2), count(e3)
+    keys: list[np.ndarray] = []
+    pairs, group_of = np.unique(np.column_stack([n1, n2]), axis=0, return_inverse=True)
+    for g, (m1, m2) in enumerate(pairs):
+        members = np.flatnonzero(group_of.ravel() == g)
+        weights = _lattice(int(m1), int(m2))
         per_batch = max(1, max_points_per_batch // len(weights))
-        for start in range(0, len(group), per_batch):
-            rows = group[start : start + per_batch]
+        for start in range(0, len(members), per_batch):
+            sel = members[start : start + per_batch]
             points = (
-                a[rows, None, :]
-                + weights[None, :, 0:1] * e1[rows, None, :]
-                + weights[None, :, 1:2] * e2[rows, None, :]
+                a[sel, None, :]
+                + weights[None, :, 0:1] * e1[sel, None, :]
+                + weights[None, :, 1:2] * e2[sel, None, :]
             ).reshape(-1, 3)
-            found.append(np.unique(voxel_indices(points, origin, resolution_m), axis=0))
-    indices = np.unique(np.concatenate(found), axis=0) if found else np.zeros((0, 3), np.int64)
-    return VoxelSet(resolution_m, origin, indices)
+            keys.append(np.unique(_pack(voxel_indices(points, origin, resolution_m))))
+    # The lattice reaches the third edge only where its nodes fall on it: sample it as well.
+    for m3 in np.unique(n3):
+        sel = np.flatnonzero(n3 == m3)
+        t = np.arange(int(m3) + 1)[None, :, None] / m3
+        points = (b[sel, None, :] + t * e3[sel, None, :]).reshape(-1, 3)
+        keys.append(np.unique(_pack(voxel_indices(points, origin, resolution_m))))
+    if not keys:
+        return VoxelSet(resolution_m, origin, np.zeros((0, 3), np.int64))
+    return VoxelSet(resolution_m, origin, _unpack(np.unique(np.concatenate(keys))))

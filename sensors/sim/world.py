@@ -328,8 +328,11 @@ def perturb_movables(
     boxes = [b for b in (perturb(b) for b in world.boxes) if isinstance(b, Box)]
     cylinders = [c for c in (perturb(c) for c in world.cylinders) if isinstance(c, Cylinder)]
     changed = world_from_mapping(
-        {**world.model_dump(), "boxes": [b.model_dump() for b in boxes],
-         "cylinders": [c.model_dump() for c in cylinders]},
+        {
+            **world.model_dump(),
+            "boxes": [b.model_dump() for b in boxes],
+            "cylinders": [c.model_dump() for c in cylinders],
+        },
         source=f"{world.name} (perturbed)",
     )
     return changed, changes

@@ -1,0 +1,175 @@
+"""The ``coopmap`` command line (DESIGN §11).
+
+Every command takes ``--config FILE`` (YAML overrides of ``configs/default.yaml``). Known errors
+print one line on stderr and exit with code 2, never a traceback. Each command is a thin shell
+around a typed function that tests call directly; heavy modules are imported inside commands so
+that ``coopmap --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, ParamSpec, TypeVar
+
+import typer
+
+from estimation.config import Config, ConfigError, config_to_yaml, load_config
+
+__all__ = ["app", "main"]
+
+P = ParamSpec("P")
+R = TypeVar("R")
+
+app = typer.Typer(
+    name="coopmap",
+    help="Cooperative 3D mapping by mobile robots that localize each other.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+world_app = typer.Typer(help="Simulated worlds.", no_args_is_help=True)
+config_app = typer.Typer(help="The configuration.", no_args_is_help=True)
+app.add_typer(world_app, name="world")
+app.add_typer(config_app, name="config")
+
+ConfigOption = Annotated[
+    Path | None,
+    typer.Option("--config", "-c", help="YAML file of overrides merged over the defaults."),
+]
+
+
+def _known_errors() -> tuple[type[BaseException], ...]:
+    from mapping.ply import PlyError
+    from sensors.errors import SensorError
+
+    return (ConfigError, SensorError, PlyError, OSError)
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror and exc.filename:
+        return f"{exc.filename}: {exc.strerror.lower()}"
+    return str(exc) or type(exc).__name__
+
+
+def cli_errors(command: Callable[P, R]) -> Callable[P, R]:
+    """Turn known errors into one line on stderr and exit code 2."""
+
+    @functools.wraps(command)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        try:
+            return command(*args, **kwargs)
+        except _known_errors() as exc:
+            typer.echo(f"coopmap: error: {_describe(exc)}", err=True)
+            raise typer.Exit(code=2) from None
+
+    return wrapper
+
+
+def _config(path: Path | None) -> Config:
+    return load_config(path)
+
+
+def _console(stderr: bool = False):  # type: ignore[no-untyped-def]
+    from rich.console import Console
+
+    return Console(stderr=stderr, highlight=False)
+
+
+def _file_size(path: Path) -> str:
+    size = path.stat().st_size
+    return f"{size / 1e6:.1f} MB" if size >= 1e6 else f"{size / 1e3:.0f} kB"
+
+
+@app.command()
+@cli_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("runs/demo"),
+    config: ConfigOption = None,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated noise.")] = 0,
+) -> None:
+    """Simulate a 360° 3D view in the default world and write the figures and point cloud."""
+    from estimation.demo import DEFAULT_POSE, DEFAULT_WORLD, run_demo
+
+    cfg = _config(config)
+    err = _console(stderr=True)
+    with err.status(f"simulating a 360° view in {DEFAULT_WORLD}…", spinner="dots"):
+        result = run_demo(out, cfg, world=DEFAULT_WORLD, pose=DEFAULT_POSE, seed=seed)
+    console = _console()
+    x, y, yaw = result.pose
+    console.print(
+        f"coopmap demo: world [bold]{result.world}[/], robot at x={x:g} m, y={y:g} m, "
+        f"yaw={yaw:g}°: {result.rays:,} rays, {result.points:,} returns on "
+        f"{result.surfaces_hit} surfaces"
+    )
+    for label, path in result.outputs:
+        console.print(f"  wrote {path}  ({label}, {_file_size(path)})")
+
+
+@world_app.command("show")
+@cli_errors
+def world_show(
+    world: Annotated[str, typer.Argument(help="A built-in world name or a world YAML file.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="PNG file to write.")],
+    config: ConfigOption = None,
+) -> None:
+    """Draw a world: top view with a height colour scale, and its sub-ceiling band."""
+    from estimation.figures import render_world
+    from estimation.resources import resolve_builtin
+    from sensors.sim.world import load_world
+
+    cfg = _config(config)
+    if out.suffix.lower() != ".png":
+        raise ConfigError(f"{out}: --out must name a .png file")
+    model = load_world(resolve_builtin("worlds", world))
+    band = cfg.bands.ceiling
+    path = render_world(
+        model,
+        out,
+        band_m=(band.min_m, band.max_m),
+        band_resolution_m=cfg.grid.resolution_m,
+        cylinder_segments=cfg.simulation.cylinder_segments,
+    )
+    movable = len(model.movable_names())
+    _console().print(
+        f"wrote {path} ({_file_size(path)}): {model.name}, {len(model.rooms)} rooms, "
+        f"{len(model.boxes)} boxes, {len(model.cylinders)} cylinders ({movable} movable)"
+    )
+
+
+@world_app.command("list")
+@cli_errors
+def world_list() -> None:
+    """List the built-in worlds."""
+    from estimation.resources import builtin_names, resolve_builtin
+    from sensors.sim.world import load_world
+
+    console = _console()
+    for name in builtin_names("worlds"):
+        model = load_world(resolve_builtin("worlds", name))
+        lower, upper = model.bounds_xy()
+        size = upper - lower
+        console.print(
+            f"{name:16s} {size[0]:5.1f} m × {size[1]:4.1f} m, {len(model.rooms):2d} rooms, "
+            f"{len(model.boxes) + len(model.cylinders):3d} objects "
+            f"({len(model.movable_names())} movable)"
+        )
+
+
+@config_app.command("show")
+@cli_errors
+def config_show(config: ConfigOption = None) -> None:
+    """Print the effective configuration (defaults merged with --config) as YAML."""
+    typer.echo(config_to_yaml(_config(config)), nl=False)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        typer.echo("coopmap: interrupted", err=True)
+        sys.exit(130)
