@@ -1,0 +1,77 @@
+"""Ground-truth occupancy against analytic voxel counts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sensors.errors import SensorError
+from sensors.sim.scene import build_mesh
+from sensors.sim.truth import surface_voxels
+from sensors.sim.world import World, world_from_mapping
+from tests.sensors.sim.conftest import box_room_document
+
+
+def shell(nx: int, ny: int, nz: int) -> int:
+    """Voxels on the surface of an nx × ny × nz block of voxels."""
+    return nx * ny * nz - (nx - 2) * (ny - 2) * (nz - 2)
+
+
+@pytest.mark.parametrize(
+    "origin",
+    [(0.0, 0.0, 0.0), (-0.05, -0.05, -0.05), (0.03, 0.02, 0.01), (-0.1, 0.2, -0.3)],
+)
+def test_box_room_voxel_count_is_analytic(box_room: World, origin: tuple[float, ...]) -> None:
+    # Walls at x = 0 and 4, y = 0 and 3, floor 0, ceiling 2.5, at 0.1 m: on every lattice the
+    # room's surfaces fill a shell 41 × 31 × 26 voxels large.
+    voxels = surface_voxels(build_mesh(box_room), 0.1, origin)
+    assert len(voxels) == shell(41, 31, 26) == 5902
+    assert len(np.unique(voxels.indices, axis=0)) == len(voxels)
+
+
+def test_box_room_voxels_sit_on_the_surfaces(box_room: World) -> None:
+    voxels = surface_voxels(build_mesh(box_room), 0.1)
+    centers = voxels.centers()
+    # Each voxel centre lies within half a voxel (plus boundary rounding) of a room plane.
+    gaps = np.min(np.abs(np.concatenate([centers, [4.0, 3.0, 2.5] - centers], axis=1)), axis=1)
+    assert gaps.max() <= 0.05 + 1e-9
+    lower = voxels.indices.min(axis=0)
+    upper = voxels.indices.max(axis=0)
+    assert lower.tolist() == [0, 0, 0] and upper.tolist() == [40, 30, 25]
+
+
+def test_surface_mask_selects_surfaces() -> None:
+    doc = box_room_document()
+    doc["boxes"] = [{"name": "crate", "center": [2.05, 1.55], "size": [0.4, 0.4], "z_m": [0, 1]}]
+    mesh = build_mesh(world_from_mapping(doc))
+    crate_only = np.array([s.name == "crate" for s in mesh.surfaces])
+    # x 1.85–2.25 → cells 18–22, y 1.35–1.75 → 13–17, z 0–1 → 0–10: a 5 × 5 × 11 shell.
+    assert len(surface_voxels(mesh, 0.1, surface_mask=crate_only)) == shell(5, 5, 11)
+    floor_only = np.array([s.kind == "floor" for s in mesh.surfaces])
+    floor = surface_voxels(mesh, 0.1, surface_mask=floor_only)
+    assert len(floor) == 41 * 31 and set(floor.indices[:, 2]) == {0}
+
+
+def test_band_and_column_counts(box_room: World) -> None:
+    voxels = surface_voxels(build_mesh(box_room), 0.1)
+    band = voxels.band(2.3, 2.9)
+    # Layers with centres 2.35 and 2.45 are wall rings; the ceiling layer (2.55) is full.
+    ring = 2 * 41 + 2 * 29
+    assert len(band) == 2 * ring + 41 * 31
+    columns, counts = band.column_counts()
+    assert len(columns) == 41 * 31
+    assert counts.max() == 3 and counts.min() == 1
+
+
+def test_resolution_must_be_positive(box_room: World) -> None:
+    mesh = build_mesh(box_room)
+    for bad in (0.0, -0.1, float("nan"), float("inf")):
+        with pytest.raises(SensorError, match="resolution_m must be a positive number"):
+            surface_voxels(mesh, bad)
+
+
+def test_finer_resolution_scales_with_area(box_room: World) -> None:
+    coarse = len(surface_voxels(build_mesh(box_room), 0.1))
+    fine = len(surface_voxels(build_mesh(box_room), 0.05))
+    assert fine == shell(81, 61, 51)
+    assert 3.5 < fine / coarse < 4.5  # surfaces: voxel count grows with 1 / res²
