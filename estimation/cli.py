@@ -76,7 +76,8 @@ def _config(path: Path | None) -> Config:
 def _console(stderr: bool = False):  # type: ignore[no-untyped-def]
     from rich.console import Console
 
-    return Console(stderr=stderr, highlight=False)
+    # soft_wrap: never break long lines (paths) when the output is piped or captured.
+    return Console(stderr=stderr, highlight=False, soft_wrap=True)
 
 
 def _file_size(path: Path) -> str:

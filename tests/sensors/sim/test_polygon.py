@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from sensors.sim.polygon import (
@@ -53,6 +53,8 @@ def star_polygons(draw: st.DrawFn) -> np.ndarray:
     radii = draw(st.lists(st.floats(0.2, 5.0), min_size=n, max_size=n))
     jitter = draw(st.lists(st.floats(0.05, 0.95), min_size=n, max_size=n))
     angles = [2 * math.pi * (k + j) / n for k, j in enumerate(jitter)]
+    gaps = np.diff([*angles, angles[0] + 2 * math.pi])
+    assume(gaps.max() < math.pi - 1e-3)  # otherwise the origin is outside: not a star
     return np.array(
         [[r * math.cos(a), r * math.sin(a)] for r, a in zip(radii, angles, strict=True)]
     )

@@ -84,7 +84,8 @@ def test_rays_leave_through_openings_only() -> None:
     origins = np.array([[1.5, 1.5, 1.0], [1.5, 1.5, 2.2], [3.0, 1.5, 1.5], [3.0, 1.5, 0.5]])
     directions = np.array([[0, -1, 0], [0, -1, 0], [1, 0, 0], [1, 0, 0]])
     hits = RaycastScene(mesh).cast(origins, directions)
-    assert not hits.hit[0] and hits.surface_id[0] == -1  # through the door
+    assert not hits.hit[0]
+    assert hits.surface_id[0] == -1
     assert hits.range_m[1] == pytest.approx(1.5, abs=RANGE_TOL_M)  # wall above the door
     assert mesh.surfaces[hits.surface_id[1]].name == "r/wall_0"
     assert not hits.hit[2]  # through the window
@@ -186,7 +187,8 @@ def test_height_map_sees_the_tops_of_objects() -> None:
     row, col = int((1.0 + 1.0) / 0.1), int((1.0 + 1.0) / 0.1)  # cell around (1.05, 1.05)
     assert heights[row, col] == pytest.approx(0.8, abs=1e-5)
     assert heights[row + 10, col + 10] == pytest.approx(0.0, abs=1e-5)  # floor at (2.05, 2.05)
-    assert np.isnan(heights[0, 0]) and surfaces[0, 0] == -1  # outside the room
+    assert np.isnan(heights[0, 0])
+    assert surfaces[0, 0] == -1
     inside = ~np.isnan(heights)
     assert inside.sum() == pytest.approx(40 * 30, abs=2 * (40 + 30))
 
@@ -195,7 +197,8 @@ def test_view_directions_lattice() -> None:
     directions, azimuth, elevation = view_directions(
         math.radians(1.0), math.radians(-45.0), math.radians(60.0), math.radians(1.0)
     )
-    assert len(azimuth) == 360 and len(elevation) == 106
+    assert len(azimuth) == 360
+    assert len(elevation) == 106
     assert directions.shape == (360 * 106, 3)
     np.testing.assert_allclose(np.linalg.norm(directions, axis=1), 1.0, atol=1e-12)
     grid = directions.reshape(106, 360, 3)

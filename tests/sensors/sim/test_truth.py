@@ -37,7 +37,8 @@ def test_box_room_voxels_sit_on_the_surfaces(box_room: World) -> None:
     assert gaps.max() <= 0.05 + 1e-9
     lower = voxels.indices.min(axis=0)
     upper = voxels.indices.max(axis=0)
-    assert lower.tolist() == [0, 0, 0] and upper.tolist() == [40, 30, 25]
+    assert lower.tolist() == [0, 0, 0]
+    assert upper.tolist() == [40, 30, 25]
 
 
 def test_surface_mask_selects_surfaces() -> None:
@@ -49,7 +50,8 @@ def test_surface_mask_selects_surfaces() -> None:
     assert len(surface_voxels(mesh, 0.1, surface_mask=crate_only)) == shell(5, 5, 11)
     floor_only = np.array([s.kind == "floor" for s in mesh.surfaces])
     floor = surface_voxels(mesh, 0.1, surface_mask=floor_only)
-    assert len(floor) == 41 * 31 and set(floor.indices[:, 2]) == {0}
+    assert len(floor) == 41 * 31
+    assert set(floor.indices[:, 2]) == {0}
 
 
 def test_band_and_column_counts(box_room: World) -> None:
@@ -60,7 +62,8 @@ def test_band_and_column_counts(box_room: World) -> None:
     assert len(band) == 2 * ring + 41 * 31
     columns, counts = band.column_counts()
     assert len(columns) == 41 * 31
-    assert counts.max() == 3 and counts.min() == 1
+    assert counts.max() == 3
+    assert counts.min() == 1
 
 
 def test_resolution_must_be_positive(box_room: World) -> None:

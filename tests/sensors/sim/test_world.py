@@ -37,15 +37,16 @@ def test_essex_lab_matches_the_paper() -> None:
     assert upper[0] - lower[0] == pytest.approx(12.0)  # "about 12 m wide"
     assert world.rooms[0].ceiling_m == pytest.approx(3.0)
     pillars = [b for b in world.boxes if b.name.startswith("pillar")]
-    assert len(pillars) == 2 and all(not p.movable for p in pillars)
+    assert len(pillars) == 2
+    assert all(not p.movable for p in pillars)
     windows = [o for o in world.rooms[0].openings if not o.is_door]
     doors = [o for o in world.rooms[0].openings if o.is_door]
-    assert len(windows) >= 3 and {o.wall for o in windows} == {2}  # along the back wall
+    assert len(windows) >= 3
+    assert {o.wall for o in windows} == {2}
     assert len(doors) >= 1
     movable = world.movable_names()
-    assert any(n.startswith("desk") for n in movable) and any(
-        n.startswith("chair") for n in movable
-    )
+    assert any(n.startswith("desk") for n in movable)
+    assert any(n.startswith("chair") for n in movable)
 
 
 def test_office_loop_is_a_corridor_loop() -> None:
@@ -223,7 +224,8 @@ def test_perturbation_is_seeded_and_touches_only_movables() -> None:
     b, changes_b = perturb_movables(
         world, np.random.default_rng(3), fraction=1.0, shift_m=0.5, yaw_deg=30.0
     )
-    assert a == b and changes_a == changes_b
+    assert a == b
+    assert changes_a == changes_b
     assert {c.name for c in changes_a} == set(world.movable_names())
     pillar = next(x for x in a.boxes if x.name == "pillar")
     assert pillar == next(x for x in world.boxes if x.name == "pillar")
@@ -241,11 +243,13 @@ def test_perturbation_fraction_and_removal() -> None:
     same, changes = perturb_movables(
         world, np.random.default_rng(0), fraction=0.0, shift_m=1.0, yaw_deg=10
     )
-    assert same == world and changes == []
+    assert same == world
+    assert changes == []
     empty, changes = perturb_movables(
         world, np.random.default_rng(0), fraction=1.0, shift_m=1.0, yaw_deg=10, remove_fraction=1.0
     )
-    assert empty.movable_names() == [] and len(changes) == 9
+    assert empty.movable_names() == []
+    assert len(changes) == 9
     assert all(c.action == "removed" for c in changes)
     assert [b.name for b in empty.boxes] == ["pillar"]
 
