@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Annotated, ParamSpec, TypeVar
 
 import typer
+from rich.console import Console
 
 from estimation.config import Config, ConfigError, config_to_yaml, load_config
 
@@ -73,8 +74,7 @@ def _config(path: Path | None) -> Config:
     return load_config(path)
 
 
-def _console(stderr: bool = False):  # type: ignore[no-untyped-def]
-    from rich.console import Console
+def _console(stderr: bool = False) -> Console:
 
     # soft_wrap: never break long lines (paths) when the output is piped or captured.
     return Console(stderr=stderr, highlight=False, soft_wrap=True)

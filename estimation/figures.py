@@ -82,7 +82,7 @@ def _outline_flagged(ax: Axes, world: World) -> None:
         if cyl.movable or cyl.retroreflective:
             ax.add_patch(
                 Circle(
-                    tuple(cyl.center),
+                    (cyl.center[0], cyl.center[1]),
                     cyl.radius_m,
                     fill=False,
                     zorder=5,

@@ -14,7 +14,7 @@ from sensors.atomic import atomic_path
 
 __all__ = ["PlyError", "read_ply", "write_ply"]
 
-_PLY_TYPES = {
+_PLY_TYPES: dict[np.dtype, str] = {
     np.dtype("float32"): "float",
     np.dtype("float64"): "double",
     np.dtype("int32"): "int",
@@ -24,7 +24,7 @@ _PLY_TYPES = {
     np.dtype("uint32"): "uint",
     np.dtype("int8"): "char",
 }
-_NUMPY_TYPES = {name: dtype for dtype, name in _PLY_TYPES.items()} | {
+_NUMPY_TYPES: dict[str, np.dtype] = {name: dtype for dtype, name in _PLY_TYPES.items()} | {
     "float32": np.dtype("float32"),
     "float64": np.dtype("float64"),
     "int8": np.dtype("int8"),

@@ -174,6 +174,7 @@ def _prism(outline_xy: np.ndarray, z0: float, z1: float) -> tuple[np.ndarray, np
 
 
 def _add_solid(builder: _MeshBuilder, solid: Box | Cylinder, segments: int) -> None:
+    kind: SurfaceKind
     if isinstance(solid, Box):
         outline, kind = solid.corners_xy(), "box"
     else:
@@ -229,8 +230,8 @@ class RaycastScene:
         self._o3d = o3d
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(
-            o3d.core.Tensor(mesh.vertices.astype(np.float32)),
-            o3d.core.Tensor(mesh.triangles.astype(np.uint32)),
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(mesh.triangles, dtype=np.uint32)),
         )
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> RayHits:
@@ -246,7 +247,7 @@ class RaycastScene:
         if np.any(norms <= 0):
             raise SensorError("ray directions must be non-zero")
         rays = np.concatenate([origins, directions / norms], axis=1).astype(np.float32)
-        result: dict[str, Any] = self._scene.cast_rays(self._o3d.core.Tensor(rays))
+        result: dict[str, Any] = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
         t_hit = result["t_hit"].numpy().astype(float)
         primitive = result["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t_hit)

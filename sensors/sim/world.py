@@ -208,9 +208,10 @@ class World(_Model):
     @model_validator(mode="after")
     def _consistent(self) -> Self:
         seen: dict[str, str] = {}
-        for kind, items in (("rooms", self.rooms), ("boxes", self.boxes)):
-            for k, item in enumerate(items):
-                self._check_unique(seen, item.name, f"{kind}[{k}]")
+        for k, each_room in enumerate(self.rooms):
+            self._check_unique(seen, each_room.name, f"rooms[{k}]")
+        for k, box in enumerate(self.boxes):
+            self._check_unique(seen, box.name, f"boxes[{k}]")
         for k, cyl in enumerate(self.cylinders):
             self._check_unique(seen, cyl.name, f"cylinders[{k}]")
         for kind, solids in (("boxes", self.boxes), ("cylinders", self.cylinders)):
