@@ -143,11 +143,12 @@ def world_show(
 
 @world_app.command("list")
 @cli_errors
-def world_list() -> None:
+def world_list(config: ConfigOption = None) -> None:
     """List the built-in worlds."""
     from estimation.resources import builtin_names, resolve_builtin
     from sensors.sim.world import load_world
 
+    _config(config)  # validated like every command's, though listing needs none of it
     console = _console()
     for name in builtin_names("worlds"):
         model = load_world(resolve_builtin("worlds", name))

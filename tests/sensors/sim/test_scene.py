@@ -205,3 +205,15 @@ def test_view_directions_lattice() -> None:
     np.testing.assert_allclose(np.degrees(np.arcsin(grid[:, 0, 2])), np.linspace(-45, 60, 106))
     with pytest.raises(SensorError, match="positive"):
         view_directions(0.0, -1.0, 1.0, 0.1)
+
+
+def test_open3d_mesh_matches_and_is_closed(box_room: World) -> None:
+    mesh = build_mesh(box_room)
+    legacy = mesh.to_open3d()
+    assert len(legacy.triangles) == len(mesh.triangles)
+    assert legacy.get_surface_area() == pytest.approx(mesh.triangle_areas().sum(), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(legacy.vertices), mesh.vertices)
+    # Welding coincident vertices gives a closed box: every edge shared by two triangles.
+    legacy.merge_close_vertices(1e-9)
+    assert legacy.is_edge_manifold()
+    assert len(legacy.get_non_manifold_edges(allow_boundary_edges=False)) == 0
