@@ -13,7 +13,7 @@ import numpy as np
 
 from sensors.atomic import atomic_path
 from sensors.sim.scene import RaycastScene, build_mesh
-from sensors.sim.truth import surface_voxels
+from sensors.sim.truth import band_share, surface_voxels
 from sensors.sim.world import World
 
 if TYPE_CHECKING:
@@ -118,20 +118,12 @@ def render_world(
     heights, _ = scene.height_map(lower, upper, top_resolution_m, world.max_ceiling_m + 1.0)
 
     mesh = build_mesh(world, cylinder_segments=cylinder_segments)
-    voxels = surface_voxels(mesh, band_resolution_m).band(*band_m)
-    cells = max(1, round((band_m[1] - band_m[0]) / band_resolution_m))
-    origin = np.floor(lower / band_resolution_m).astype(int)
-    shape = np.ceil((upper - lower) / band_resolution_m).astype(int) + 1
-    band = np.full((shape[1], shape[0]), np.nan)
-    columns, counts = voxels.column_counts()
-    cols = columns - origin
-    ok = (cols[:, 0] >= 0) & (cols[:, 0] < shape[0]) & (cols[:, 1] >= 0) & (cols[:, 1] < shape[1])
-    gx = lower[0] + (np.arange(shape[0]) + 0.5) * band_resolution_m
-    gy = lower[1] + (np.arange(shape[1]) + 0.5) * band_resolution_m
-    mx, my = np.meshgrid(gx, gy)
-    free = world.inside(np.column_stack([mx.ravel(), my.ravel()])).reshape(mx.shape)
-    band[free] = 0.0
-    band[cols[ok, 1], cols[ok, 0]] = np.minimum(1.0, counts[ok] / cells)
+    voxels = surface_voxels(mesh, band_resolution_m)
+    band_image = band_share(voxels, band_m[0], band_m[1], lower, upper)
+    # Columns inside the rooms with nothing in the band are free (0); outside, unknown (NaN).
+    gx, gy = band_image.cell_centers()
+    inside = world.inside(np.column_stack([gx.ravel(), gy.ravel()])).reshape(gx.shape)
+    band = np.where(inside | (band_image.share > 0), band_image.share, np.nan)
 
     extent_top = (
         lower[0],
@@ -139,12 +131,7 @@ def render_world(
         lower[1],
         lower[1] + heights.shape[0] * top_resolution_m,
     )
-    extent_band = (
-        origin[0] * band_resolution_m,
-        (origin[0] + shape[0]) * band_resolution_m,
-        origin[1] * band_resolution_m,
-        (origin[1] + shape[1]) * band_resolution_m,
-    )
+    extent_band = band_image.extent()
     span = upper - lower
     wide = span[0] >= 1.3 * span[1]
     panel_w = 6.0 if wide else 5.0

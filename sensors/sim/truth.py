@@ -18,7 +18,7 @@ import numpy as np
 from sensors.errors import SensorError
 from sensors.sim.scene import WorldMesh
 
-__all__ = ["VoxelSet", "surface_voxels"]
+__all__ = ["BandImage", "VoxelSet", "band_share", "surface_voxels"]
 
 #: Points within this fraction of a voxel below a boundary count as on it (float round-off).
 _BOUNDARY_EPS = 1e-6
@@ -145,3 +145,57 @@ def surface_voxels(
     if not keys:
         return VoxelSet(resolution_m, origin, np.zeros((0, 3), np.int64))
     return VoxelSet(resolution_m, origin, _unpack(np.unique(np.concatenate(keys))))
+
+
+@dataclass(frozen=True)
+class BandImage:
+    """Per column of voxels, the occupied share of a height band: (H, W), row = y, col = x."""
+
+    share: np.ndarray  # (H, W) in [0, 1]
+    lower_xy: np.ndarray  # (2,) map-frame corner of cell (row 0, col 0)
+    resolution_m: float
+
+    def cell_centers(self) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) x and y of the cell centres."""
+        rows, cols = self.share.shape
+        xs = self.lower_xy[0] + (np.arange(cols) + 0.5) * self.resolution_m
+        ys = self.lower_xy[1] + (np.arange(rows) + 0.5) * self.resolution_m
+        gx, gy = np.meshgrid(xs, ys)
+        return gx, gy
+
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x_min, x_max, y_min, y_max) of the image, for plotting."""
+        rows, cols = self.share.shape
+        x0, y0 = float(self.lower_xy[0]), float(self.lower_xy[1])
+        return (x0, x0 + cols * self.resolution_m, y0, y0 + rows * self.resolution_m)
+
+
+def band_share(
+    voxels: VoxelSet,
+    z_min_m: float,
+    z_max_m: float,
+    lower_xy: np.ndarray,
+    upper_xy: np.ndarray,
+) -> BandImage:
+    """Sum the voxel columns of a height band and normalise (the paper's sub-ceiling section).
+
+    A cell's value is the share of the band's voxel layers (those whose centres lie within
+    [z_min_m, z_max_m)) that are occupied in its column. The image covers the voxel columns
+    that overlap the rectangle [lower_xy, upper_xy], on the voxels' own lattice.
+    """
+    if not z_min_m < z_max_m:
+        raise SensorError(f"band must run upwards, got [{z_min_m}, {z_max_m}]")
+    res, origin = voxels.resolution_m, voxels.origin_m
+    k_first = math.ceil((z_min_m - origin[2]) / res - 0.5 - _BOUNDARY_EPS)
+    k_last = math.ceil((z_max_m - origin[2]) / res - 0.5 - _BOUNDARY_EPS) - 1
+    layers = max(1, k_last - k_first + 1)
+    first = np.floor((np.asarray(lower_xy, float) - origin[:2]) / res).astype(np.int64)
+    last = np.floor((np.asarray(upper_xy, float) - origin[:2]) / res).astype(np.int64)
+    cols, rows = (last - first + 1).tolist()
+    share = np.zeros((max(rows, 0), max(cols, 0)))
+    columns, counts = voxels.band(z_min_m, z_max_m).column_counts()
+    if len(columns):
+        ij = columns - first
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < cols) & (ij[:, 1] >= 0) & (ij[:, 1] < rows)
+        share[ij[ok, 1], ij[ok, 0]] = counts[ok] / layers
+    return BandImage(share, origin[:2] + first * res, res)

@@ -7,7 +7,7 @@ import pytest
 
 from sensors.errors import SensorError
 from sensors.sim.scene import build_mesh
-from sensors.sim.truth import surface_voxels
+from sensors.sim.truth import band_share, surface_voxels
 from sensors.sim.world import World, world_from_mapping
 from tests.sensors.sim.conftest import box_room_document
 
@@ -78,3 +78,27 @@ def test_finer_resolution_scales_with_area(box_room: World) -> None:
     fine = len(surface_voxels(build_mesh(box_room), 0.05))
     assert fine == shell(81, 61, 51)
     assert 3.5 < fine / coarse < 4.5  # surfaces: voxel count grows with 1 / res²
+
+
+def test_band_share_of_a_room_with_a_beam() -> None:
+    doc = box_room_document()
+    doc["boxes"] = [{"name": "beam", "center": [2.05, 1.5], "size": [0.2, 3.0], "z_m": [2.3, 2.5]}]
+    voxels = surface_voxels(build_mesh(world_from_mapping(doc)), 0.1)
+    image = band_share(voxels, 2.0, 2.4, np.array([-0.5, -0.5]), np.array([4.5, 3.5]))
+    # Layers with centres 2.05, 2.15, 2.25, 2.35: four; the ceiling (2.55) is above the band.
+    assert image.share.shape == (41, 51)
+    assert image.extent() == pytest.approx((-0.5, 4.6, -0.5, 3.6))
+    gx, gy = image.cell_centers()
+    at = lambda x, y: image.share[np.argmin(np.abs(gy[:, 0] - y)), np.argmin(np.abs(gx[0] - x))]  # noqa: E731
+    assert at(0.05, 1.55) == 1.0  # a wall column: all four layers
+    assert at(1.05, 1.55) == 0.0  # open room
+    assert at(1.95, 1.55) == 0.25  # the beam's side face: only the 2.35 layer
+    assert at(2.05, 1.55) == 0.25  # the beam's underside at 2.3: the 2.35 layer
+    assert at(-0.45, 1.55) == 0.0  # outside: nothing
+    assert image.share.max() == 1.0
+
+
+def test_band_share_rejects_an_upside_down_band(box_room: World) -> None:
+    voxels = surface_voxels(build_mesh(box_room), 0.1)
+    with pytest.raises(SensorError, match="band must run upwards"):
+        band_share(voxels, 2.9, 2.3, np.zeros(2), np.ones(2))
