@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["SensorError", "WorldError"]
+__all__ = ["DeviceError", "SensorError", "WorldError"]
 
 
 class SensorError(Exception):
@@ -11,3 +11,7 @@ class SensorError(Exception):
 
 class WorldError(SensorError, ValueError):
     """A world description is invalid; the message names the file, key path and value."""
+
+
+class DeviceError(SensorError):
+    """A device (the LMS 200 on its serial port) failed; the message says what was happening."""
