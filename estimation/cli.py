@@ -34,8 +34,19 @@ app = typer.Typer(
 )
 world_app = typer.Typer(help="Simulated worlds.", no_args_is_help=True)
 config_app = typer.Typer(help="The configuration.", no_args_is_help=True)
+bench_app = typer.Typer(
+    help="Side-by-side benchmarks: coopmap and its peer in one process, with their ratio.",
+    no_args_is_help=True,
+)
+lms_app = typer.Typer(help="The SICK LMS 200: decode, emulate, record.", no_args_is_help=True)
 app.add_typer(world_app, name="world")
 app.add_typer(config_app, name="config")
+app.add_typer(bench_app, name="bench")
+app.add_typer(lms_app, name="lms")
+
+JsonOption = Annotated[
+    bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")
+]
 
 ConfigOption = Annotated[
     Path | None,
@@ -159,6 +170,73 @@ def world_list(config: ConfigOption = None) -> None:
             f"{len(model.boxes) + len(model.cylinders):3d} objects "
             f"({len(model.movable_names())} movable)"
         )
+
+
+@lms_app.command("decode")
+@cli_errors
+def lms_decode(
+    file: Annotated[Path, typer.Argument(help="A capture (lms record) or a plain binary dump.")],
+    json_out: JsonOption = False,
+    direction: Annotated[
+        str, typer.Option(help="from_sensor, to_sensor or any (by the address bit).")
+    ] = "any",
+    config: ConfigOption = None,
+) -> None:
+    """Decode a raw LMS 2xx byte stream: one line per telegram, then a summary of counts."""
+    import json
+
+    from sensors.lms200.capture import CaptureReader, decode_stream
+
+    cfg = _config(config)
+    records, summary = decode_stream(CaptureReader(file), cfg.scanner.measuring_mode, direction)
+    out = sys.stdout
+    for record in records:
+        if json_out:
+            out.write(json.dumps(record, separators=(",", ":")) + "\n")
+        else:
+            out.write(_telegram_line(record) + "\n")
+    counts = summary.as_dict()
+    if json_out:
+        out.write(json.dumps({"kind": "summary", **counts}) + "\n")
+    else:
+        out.write(
+            f"{file}: {counts['bytes']:,} bytes, {counts['telegrams']:,} telegrams "
+            f"({counts['scans']:,} scans, {counts['replies']:,} replies, "
+            f"{counts['commands']:,} commands), {counts['acks']} ACK, {counts['naks']} NAK, "
+            f"{counts['checksum_failures']} checksum failures, {counts['undecodable']} "
+            f"undecodable, {counts['bytes_skipped']:,} bytes skipped"
+            + (
+                f", {counts['truncated_bytes']} bytes truncated"
+                if counts["truncated_bytes"]
+                else ""
+            )
+            + "\n"
+        )
+
+
+def _telegram_line(record: dict[str, object]) -> str:
+    kind = str(record["kind"])
+    head = f"{record['offset']:>10}  {kind:<12}"
+    if "code" in record:
+        head += f" {int(record['code']):02X}"  # type: ignore[call-overload]
+    if kind == "scan":
+        ranges = record["ranges_m"]
+        assert isinstance(ranges, list)
+        valid = sum(r is not None for r in ranges)
+        flagged = sum(1 for f in record["flags"] if f)  # type: ignore[attr-defined]
+        index = record.get("scan_index")
+        return (
+            f"{head}  {len(ranges)} values, {valid} valid, {flagged} flagged, {record['unit']}"
+            + (f", scan index {index}" if index is not None else "")
+        )
+    if kind == "reply":
+        details = {k: v for k, v in record.items() if k not in
+                   ("offset", "addr", "code", "crc_ok", "kind", "stamp_s", "status", "name")}  # fmt: skip
+        return f"{head}  {record['name']} {details}"
+    if kind in ("command", "invalid", "bad_checksum"):
+        extra = record.get("error") or record.get("data") or f"length {record.get('length')}"
+        return f"{head}  {extra}"
+    return head
 
 
 @config_app.command("show")

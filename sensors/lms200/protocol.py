@@ -38,6 +38,7 @@ __all__ = [
     "NAK",
     "STX",
     "ConfigReply",
+    "Event",
     "Handshake",
     "IncorrectCommand",
     "LmsConfig",
@@ -46,6 +47,7 @@ __all__ = [
     "PermanentBaudReply",
     "PowerOn",
     "ProtocolError",
+    "Rejected",
     "Reply",
     "ResetAck",
     "Scan",
@@ -302,7 +304,7 @@ class LmsConfig:
 # --------------------------------------------------------------------------------------------
 # The stream parser (§4.4)
 
-_KIND_FRAME, _KIND_ACK, _KIND_NAK = 0, 1, 2
+_KIND_FRAME, _KIND_ACK, _KIND_NAK, _KIND_REJECTED = 0, 1, 2, 3
 _DIRECTION = {"from_sensor": 0, "to_sensor": 1, "any": 2}
 
 
@@ -330,7 +332,7 @@ def _frame_at(buf: np.ndarray, p: int, direction: int, max_len: int) -> int:  # 
 
 
 @njit(cache=True)
-def _scan_stream(buf: np.ndarray, direction: int, max_len: int, final: bool):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
+def _scan_stream(buf: np.ndarray, direction: int, max_len: int, final: bool, report_failures: bool):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
     """Find frames, ACK and NAK bytes in ``buf``.
 
     A frame that is not complete yet stops the scan (its bytes are kept for the next chunk)
@@ -374,6 +376,11 @@ def _scan_stream(buf: np.ndarray, direction: int, max_len: int, final: bool):  #
         if size < 0:
             if size == _BAD_CHECKSUM:
                 failures += 1
+                if report_failures:
+                    kinds[count] = 3
+                    offsets[count] = p
+                    lengths[count] = (buf[p + 2] | (buf[p + 3] << 8)) + 6
+                    count += 1
             skipped += 1
             p += 1
             continue
@@ -420,6 +427,20 @@ class Handshake:
     stamp_s: float | None = None
 
 
+@dataclass(frozen=True)
+class Rejected:
+    """A frame whose header was plausible but whose checksum was wrong (when reported)."""
+
+    offset: int
+    addr: int
+    code: int
+    length: int  # bytes the frame claimed, checksum included
+    stamp_s: float | None = None
+
+
+Event = Telegram | Handshake | Rejected
+
+
 @dataclass
 class ParserStats:
     bytes_in: int = 0
@@ -438,10 +459,17 @@ class StreamParser:
     Memory is bounded: at most one incomplete frame (≤ 818 bytes) is held between feeds.
     """
 
-    def __init__(self, direction: str = "from_sensor", max_len: int = MAX_LEN) -> None:
+    def __init__(
+        self,
+        direction: str = "from_sensor",
+        max_len: int = MAX_LEN,
+        *,
+        report_failures: bool = False,
+    ) -> None:
         if direction not in _DIRECTION:
             raise ProtocolError(f"direction must be one of {sorted(_DIRECTION)}, got {direction!r}")
         self._direction = _DIRECTION[direction]
+        self._report_failures = report_failures
         self._max_len = max_len
         self._buffer = bytearray()
         self._base = 0  # stream offset of self._buffer[0]
@@ -452,22 +480,22 @@ class StreamParser:
         """Bytes held while waiting for the rest of a frame."""
         return len(self._buffer)
 
-    def feed(self, chunk: bytes, stamp_s: float | None = None) -> list[Telegram | Handshake]:
+    def feed(self, chunk: bytes, stamp_s: float | None = None) -> list[Event]:
         """Parse the next chunk of the stream; returns what it completed, in stream order."""
         self.stats.bytes_in += len(chunk)
         self._buffer += chunk
         return self._parse(stamp_s, final=False)
 
-    def close(self, stamp_s: float | None = None) -> list[Telegram | Handshake]:
+    def close(self, stamp_s: float | None = None) -> list[Event]:
         """End of stream: no frame can complete any more; parse what is held and drop the rest."""
         return self._parse(stamp_s, final=True)
 
-    def _parse(self, stamp_s: float | None, final: bool) -> list[Telegram | Handshake]:
+    def _parse(self, stamp_s: float | None, final: bool) -> list[Event]:
         buf = np.frombuffer(bytes(self._buffer), dtype=np.uint8)
         count, kinds, offsets, lengths, consumed, skipped, failures = _scan_stream(
-            buf, self._direction, self._max_len, final
+            buf, self._direction, self._max_len, final, self._report_failures
         )
-        events: list[Telegram | Handshake] = []
+        events: list[Event] = []
         for k in range(count):
             start = int(offsets[k])
             if kinds[k] == _KIND_FRAME:
@@ -485,6 +513,13 @@ class StreamParser:
                     )
                 )
                 self.stats.telegrams += 1
+            elif kinds[k] == _KIND_REJECTED:
+                size = int(lengths[k])
+                events.append(
+                    Rejected(
+                        self._base + start, int(buf[start + 1]), int(buf[start + 4]), size, stamp_s
+                    )
+                )
             else:
                 events.append(Handshake(self._base + start, bool(kinds[k] == _KIND_ACK), stamp_s))
                 if kinds[k] == _KIND_ACK:

@@ -1,0 +1,288 @@
+"""Captures of a raw LMS byte stream with receive timestamps, and their decoding.
+
+A capture file (``.cap``) is::
+
+    COOPMAP-LMSCAP 1\\n
+    {"port": ..., "baud_rate": ..., "started_unix_s": ..., ...}\\n      one JSON line
+    record*                                                          until the end of the file
+
+where each record is ``stamp_s`` (float64, seconds since the capture started), ``size``
+(uint32), then ``size`` bytes exactly as they came off the port, little-endian. The same
+:class:`~sensors.lms200.protocol.StreamParser` that reads a live port replays a capture.
+
+A recording is written to ``<name>.partial`` and renamed when it ends, so an existing capture is
+never overwritten and a recording cut short still leaves every complete record readable. Any
+file that does not start with the magic line is read as a plain binary dump (no timestamps).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import struct
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from sensors.errors import SensorError
+from sensors.lms200.protocol import (
+    Event,
+    Handshake,
+    ProtocolError,
+    Rejected,
+    StreamParser,
+    Telegram,
+    decode_reply,
+    decode_scan,
+)
+
+__all__ = [
+    "CaptureError",
+    "CaptureReader",
+    "CaptureWriter",
+    "DecodeSummary",
+    "decode_stream",
+    "describe_event",
+]
+
+MAGIC = b"COOPMAP-LMSCAP 1\n"
+_RECORD = struct.Struct("<dI")
+#: Largest record a reader accepts (a serial read never returns more in one go).
+MAX_RECORD = 1 << 24
+
+
+class CaptureError(SensorError):
+    """A capture file is unreadable or malformed; the message names the file."""
+
+
+class CaptureWriter:
+    """Append timestamped chunks to a new capture; ``close()`` publishes it under its name."""
+
+    def __init__(self, path: Path | str, header: dict[str, Any] | None = None) -> None:
+        self.path = Path(path)
+        if self.path.exists():
+            raise CaptureError(f"{self.path}: already exists; choose another name or remove it")
+        self.partial = self.path.with_name(self.path.name + ".partial")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: BinaryIO | None = open(self.partial, "wb")  # noqa: SIM115 - closed in close()
+        meta = {"format": "coopmap lms capture", "started_unix_s": time.time(), **(header or {})}
+        self._file.write(MAGIC + json.dumps(meta, sort_keys=True).encode("utf-8") + b"\n")
+        self.bytes_written = 0
+        self.records = 0
+
+    def write(self, stamp_s: float, chunk: bytes) -> None:
+        if self._file is None:
+            raise CaptureError(f"{self.path}: capture already closed")
+        if not chunk:
+            return
+        self._file.write(_RECORD.pack(stamp_s, len(chunk)) + chunk)
+        self.bytes_written += len(chunk)
+        self.records += 1
+
+    def flush(self) -> None:
+        if self._file is not None:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+
+    def close(self) -> Path:
+        """Finish the capture and rename ``.partial`` to the final name."""
+        if self._file is not None:
+            self.flush()
+            self._file.close()
+            self._file = None
+            if self.path.exists():
+                raise CaptureError(f"{self.path}: appeared while recording; kept {self.partial}")
+            os.replace(self.partial, self.path)
+        return self.path
+
+    def __enter__(self) -> CaptureWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class CaptureReader:
+    """Chunks of a capture (with stamps) or of a plain binary dump (stamps None).
+
+    ``truncated_bytes`` counts the bytes of an incomplete last record, dropped while reading.
+    """
+
+    header: dict[str, Any] | None
+
+    def __init__(self, path: Path | str) -> None:
+        self.path = Path(path)
+        self.truncated_bytes = 0
+        self._offset = 0
+        try:
+            with open(self.path, "rb") as handle:
+                head = handle.read(len(MAGIC))
+                if head == MAGIC:
+                    line = handle.readline(1 << 20)
+                    if not line.endswith(b"\n"):
+                        raise CaptureError(f"{self.path}: capture header line is truncated")
+                    try:
+                        self.header = json.loads(line)
+                    except json.JSONDecodeError as exc:
+                        raise CaptureError(
+                            f"{self.path}: capture header is not JSON: {exc}"
+                        ) from None
+                    if not isinstance(self.header, dict):
+                        raise CaptureError(f"{self.path}: capture header is not a JSON object")
+                    self._offset = len(MAGIC) + len(line)
+                else:
+                    self.header = None
+                    self._offset = 0
+        except FileNotFoundError:
+            raise CaptureError(f"{self.path}: no such file") from None
+        except IsADirectoryError:
+            raise CaptureError(f"{self.path}: is a directory, expected a capture") from None
+        except OSError as exc:
+            raise CaptureError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+
+    @property
+    def is_capture(self) -> bool:
+        return self.header is not None
+
+    def chunks(self, dump_chunk: int = 1 << 16) -> Iterator[tuple[float | None, bytes]]:
+        """(stamp_s, bytes) in file order; a truncated last record is counted, not raised."""
+        with open(self.path, "rb") as handle:
+            handle.seek(self._offset)
+            if not self.is_capture:
+                while chunk := handle.read(dump_chunk):
+                    yield None, chunk
+                return
+            while head := handle.read(_RECORD.size):
+                if len(head) < _RECORD.size:
+                    self.truncated_bytes += len(head)
+                    return
+                stamp, size = _RECORD.unpack(head)
+                if size > MAX_RECORD or not math.isfinite(stamp):
+                    raise CaptureError(
+                        f"{self.path}: corrupt record at byte {handle.tell() - _RECORD.size} "
+                        f"(size {size}, stamp {stamp})"
+                    )
+                body = handle.read(size)
+                if len(body) < size:
+                    self.truncated_bytes += _RECORD.size + len(body)
+                    return
+                yield stamp, body
+
+
+# --------------------------------------------------------------------------------------------
+# Decoding a stream into records (``coopmap lms decode``)
+
+
+@dataclass
+class DecodeSummary:
+    bytes: int = 0
+    telegrams: int = 0
+    scans: int = 0
+    replies: int = 0
+    commands: int = 0
+    acks: int = 0
+    naks: int = 0
+    checksum_failures: int = 0
+    undecodable: int = 0
+    bytes_skipped: int = 0
+    truncated_bytes: int = 0
+    kinds: dict[str, int] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k != "kinds"}
+
+
+def _json_number(value: float) -> float | None:
+    return None if not math.isfinite(value) else round(float(value), 6)
+
+
+def describe_event(event: Event, measuring_mode: int = 1) -> dict[str, Any]:
+    """One JSON-ready record of an event (the line format of ``coopmap lms decode --json``)."""
+    if isinstance(event, Handshake):
+        return {"offset": event.offset, "kind": "ack" if event.ack else "nak",
+                "stamp_s": event.stamp_s}  # fmt: skip
+    if isinstance(event, Rejected):
+        return {"offset": event.offset, "addr": event.addr, "code": event.code,
+                "crc_ok": False, "kind": "bad_checksum", "length": event.length,
+                "stamp_s": event.stamp_s}  # fmt: skip
+    record: dict[str, Any] = {
+        "offset": event.offset,
+        "addr": event.addr,
+        "code": event.code,
+        "crc_ok": True,
+        "stamp_s": event.stamp_s,
+    }
+    if not event.from_sensor:
+        record.update(kind="command", data=event.data.hex())
+        return record
+    record["status"] = event.status
+    try:
+        if event.code == 0xB0:
+            scan = decode_scan(event, measuring_mode)
+            record.update(
+                kind="scan",
+                ranges_m=[_json_number(r) for r in scan.ranges_m],
+                flags=scan.flags.tolist(),
+                codes=scan.code.tolist(),
+                unit="mm" if scan.unit_m == 0.001 else "cm",
+                partial=scan.partial,
+                scan_index=scan.scan_index,
+                telegram_index=scan.telegram_index,
+            )
+            return record
+        reply = decode_reply(event)
+    except ProtocolError as exc:
+        record.update(kind="invalid", error=str(exc), data=event.data.hex())
+        return record
+    record.update(kind="reply", name=reply.name)
+    for key in ("text", "result", "ok", "angle_deg", "resolution_deg", "keep", "version",
+                "operating_mode", "measuring_mode", "baud_rate", "unit_mm"):  # fmt: skip
+        if hasattr(reply, key):
+            record[key] = getattr(reply, key)
+    config = getattr(reply, "config", None)
+    if config is not None:
+        record["config"] = config.raw.hex()
+    if reply.name == "reply":
+        record["data"] = event.data.hex()
+    return record
+
+
+def decode_stream(
+    reader: CaptureReader, measuring_mode: int = 1, direction: str = "any"
+) -> tuple[Iterator[dict[str, Any]], DecodeSummary]:
+    """Records of every telegram, ACK/NAK and checksum failure in a capture or dump.
+
+    The summary fills in as the iterator is consumed.
+    """
+    summary = DecodeSummary()
+    parser = StreamParser(direction, report_failures=True)
+
+    def records() -> Iterator[dict[str, Any]]:
+        stamp: float | None = None
+        for stamp, chunk in reader.chunks():
+            summary.bytes += len(chunk)
+            for event in parser.feed(chunk, stamp):
+                yield count(describe_event(event, measuring_mode))
+        for event in parser.close(stamp):
+            yield count(describe_event(event, measuring_mode))
+        summary.checksum_failures = parser.stats.checksum_failures
+        summary.bytes_skipped = parser.stats.bytes_skipped
+        summary.truncated_bytes = reader.truncated_bytes
+
+    def count(record: dict[str, Any]) -> dict[str, Any]:
+        kind = record["kind"]
+        summary.kinds[kind] = summary.kinds.get(kind, 0) + 1
+        if record.get("crc_ok"):
+            summary.telegrams += 1
+        summary.scans += kind == "scan"
+        summary.replies += kind == "reply"
+        summary.commands += kind == "command"
+        summary.acks += kind == "ack"
+        summary.naks += kind == "nak"
+        summary.undecodable += kind == "invalid"
+        return record
+
+    return records(), summary
