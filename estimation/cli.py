@@ -230,8 +230,8 @@ def _telegram_line(record: dict[str, object]) -> str:
             + (f", scan index {index}" if index is not None else "")
         )
     if kind == "reply":
-        details = {k: v for k, v in record.items() if k not in
-                   ("offset", "addr", "code", "crc_ok", "kind", "stamp_s", "status", "name")}  # fmt: skip
+        skip = {"offset", "addr", "code", "crc_ok", "kind", "stamp_s", "status", "name"}
+        details = {k: v for k, v in record.items() if k not in skip}
         return f"{head}  {record['name']} {details}"
     if kind in ("command", "invalid", "bad_checksum"):
         extra = record.get("error") or record.get("data") or f"length {record.get('length')}"

@@ -34,7 +34,6 @@ from sensors.lms200.protocol import (
     ProtocolError,
     Rejected,
     StreamParser,
-    Telegram,
     decode_reply,
     decode_scan,
 )
