@@ -34,7 +34,9 @@ def test_capture_round_trip_keeps_bytes_and_stamps(tmp_path: Path) -> None:
     assert reader.header["baud_rate"] == 38400
     chunks = list(reader.chunks())
     assert [s for s, _ in chunks] == [0.0, 0.08, 0.09, 0.2]
-    assert b"".join(c for _, c in chunks) == b"\x06" + p.encode_mode_reply(0) + SCAN + b"junk" + TYPE
+    assert (
+        b"".join(c for _, c in chunks) == b"\x06" + p.encode_mode_reply(0) + SCAN + b"junk" + TYPE
+    )
     assert not (tmp_path / "run.cap.partial").exists()
 
 
@@ -87,7 +89,7 @@ def test_truncated_capture_keeps_complete_records(tmp_path: Path) -> None:
     [
         (b"COOPMAP-LMSCAP 1\n{not json\n", r"capture header is not JSON"),
         (b"COOPMAP-LMSCAP 1\n[1, 2]\n", r"capture header is not a JSON object"),
-        (b"COOPMAP-LMSCAP 1\n{\"a\": 1}", r"capture header line is truncated"),
+        (b'COOPMAP-LMSCAP 1\n{"a": 1}', r"capture header line is truncated"),
     ],
 )
 def test_corrupt_headers_are_clear_errors(tmp_path: Path, content: bytes, message: str) -> None:
