@@ -12,6 +12,7 @@ was happening.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -124,10 +125,8 @@ class Lms200:
         if self._serial is None:
             return
         if self.streaming:
-            try:
+            with contextlib.suppress(DeviceError):
                 self.stop()
-            except DeviceError:
-                pass
         try:
             self._serial.close()
         finally:
@@ -292,7 +291,8 @@ class Lms200:
                 self.reply_timeout_s,
             )
         )
-        assert isinstance(current, ConfigReply) and current.config is not None
+        assert isinstance(current, ConfigReply)
+        assert current.config is not None
         wanted = current.config.with_changes(
             measuring_mode=self.measuring_mode,
             unit_mm=self.unit_mm,

@@ -81,12 +81,12 @@ def test_second_start_finds_the_rate_and_does_not_rewrite_eeprom(emulator: Lms20
 
 
 def test_finds_a_sensor_at_an_unexpected_rate() -> None:
-    with Lms200Emulator(ramp, power_on_baud=19200) as emu:
-        with fast_driver(emu.device_path, baud_rate=9600) as driver:
-            info = driver.start()
-            assert info.found_baud == 19200
-            assert emu.state.baud_rate == 9600
-            assert len(list(driver.scans(limit=2))) == 2
+    with Lms200Emulator(ramp, power_on_baud=19200) as emu, fast_driver(emu.device_path) as driver:
+        driver.baud_rate = 9600
+        info = driver.start()
+        assert info.found_baud == 19200
+        assert emu.state.baud_rate == 9600
+        assert len(list(driver.scans(limit=2))) == 2
 
 
 def test_naks_are_retried(emulator: Lms200Emulator) -> None:
