@@ -100,6 +100,7 @@ class Lms200Emulator:
         self._out_is_scan = False
         self._tx_time = 0.0
         self._t0 = 0.0
+        self._turn = 0
         self._next_scan = 0.0
         self._pending: list[tuple[float, bytes, Callable[[], None] | None]] = []
         self._parser = StreamParser("to_sensor", report_failures=True)
@@ -382,7 +383,9 @@ class Lms200Emulator:
 
     def _start_stream(self) -> None:
         self.state.streaming = True
-        self._next_scan = time.monotonic()
+        # Telegrams start at mirror-turn boundaries: the next turn after now.
+        self._turn = int(self.time_s / p.TURN_S) + 1
+        self._next_scan = self._t0 + self._turn * p.TURN_S
 
     # ---------------------------------------------------------------------------------------
     # Measured values
@@ -390,11 +393,11 @@ class Lms200Emulator:
     def _count(self) -> int:
         return _COUNT[(self.state.angle_deg, self.state.resolution_deg)]
 
-    def _scan_telegram(self, t_s: float) -> bytes:
+    def _scan_telegram(self, t_s: float, turn: int | None = None) -> bytes:
         state = self.state
         count = self._count()
         ranges, flags = self.scan_source(t_s, count)
-        turn = round(t_s / p.TURN_S)
+        turn = round(t_s / p.TURN_S) if turn is None else turn
         indices = state.config.realtime_indices
         return p.encode_scan(
             np.asarray(ranges, dtype=float)[:count],
@@ -410,12 +413,13 @@ class Lms200Emulator:
         interval = p.scan_interval_s(
             state.baud_rate, self._count(), state.resolution_deg, state.config.realtime_indices
         )
-        if self._out:  # still sending the previous telegram: this scan is lost (§8)
-            self._next_scan += interval
-            return
-        self._send(self._scan_telegram(now - self._t0))
-        self._out_is_scan = True
-        state.scans_sent += 1
-        self._next_scan += interval
-        if self._next_scan < now - 1.0:
-            self._next_scan = now  # fell far behind (a stalled process): do not burst
+        turns = round(interval / p.TURN_S)
+        if not self._out:  # else still sending the previous telegram: this scan is lost (§8)
+            self._send(self._scan_telegram(self._turn * p.TURN_S, self._turn))
+            self._out_is_scan = True
+            state.scans_sent += 1
+        self._turn += turns
+        if self._t0 + self._turn * p.TURN_S < now - 1.0:
+            # Fell far behind (a stalled process): skip ahead rather than burst.
+            self._turn = int((now - self._t0) / p.TURN_S) + 1
+        self._next_scan = self._t0 + self._turn * p.TURN_S
