@@ -113,6 +113,15 @@ class MirrorConfig(_Section):
     edge_on_half_width_deg: float = Field(
         3.0, ge=0, le=45, description="mirror angles this close to edge-on are blind"
     )
+    edge_on_beams_deg: float = Field(
+        30.0, gt=0, le=50, description="edge-on, the mirror's edge blocks beams within ± this"
+    )
+    arm_width_deg: float = Field(
+        90.0, gt=0, lt=360, description="motor angle over which the arm blocks the beams"
+    )
+    edge_on_motor_phase_deg: float = Field(
+        0.0, ge=0, lt=360, description="calibration: motor angle after an arm edge at edge-on"
+    )
 
     @model_validator(mode="after")
     def _sweep_ordered(self) -> Self:
@@ -150,9 +159,9 @@ class BeaconConfig(_Section):
     offset_m: float = Field(
         0.25, gt=0, description="d of eq. 1-2: straight ahead of the scanner origin"
     )
-    height_m: float = Field(0.85, gt=0, description="centre of the cylinder above the floor")
-    radius_m: float = Field(0.04, gt=0)
-    length_m: float = Field(0.25, gt=0, description="vertical extent of the reflective band")
+    height_m: float = Field(0.9, gt=0, description="centre of the cylinder above the floor")
+    radius_m: float = Field(0.1, gt=0)
+    length_m: float = Field(0.4, gt=0, description="vertical extent of the reflective band")
     blind_wedge_deg: float = Field(
         20.0, ge=0, lt=180, description="forward wedge where beacons cannot be seen"
     )
