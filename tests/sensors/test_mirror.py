@@ -1,0 +1,169 @@
+"""The rotating-mirror scanner: eq. 4, motor and mirror estimation, and the whole simulated chain."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from estimation.resources import resolve_builtin
+from sensors.errors import SensorError
+from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
+from sensors.mirror import (
+    MirrorGeometry,
+    assemble_sweeps,
+    elevation_at,
+    estimate_mirror,
+    fit_motor,
+    mirror_points,
+    scan_times,
+)
+from sensors.sim.scene import RaycastScene, build_mesh
+from sensors.sim.sensing import SimulatedScanner, robot_pose_matrix, scan_stream, telegram_times
+from sensors.sim.world import load_world
+
+GEOMETRY = MirrorGeometry(axis_offset_m=0.1, gear_ratio=80.0, nominal_motor_period_s=0.5)
+
+
+def reflect(range_m: float, bearing: float, psi: float, d: float) -> np.ndarray:
+    """Ray-trace one beam off a plane mirror through the axis (x = d, z = 0) at angle ψ."""
+    direction = np.array([math.cos(bearing), math.sin(bearing), 0.0])
+    normal = np.array([-math.sin(psi), 0.0, math.cos(psi)])
+    to_mirror = d / math.cos(bearing)
+    hit = direction * to_mirror
+    reflected = direction - 2 * (direction @ normal) * normal
+    return hit + reflected * (range_m - to_mirror)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(0.5, 8.0), st.floats(-0.87, 0.87), st.floats(-1.5, 1.5), st.floats(0.05, 0.3))
+def test_eq4_is_the_reflection_geometry(
+    range_m: float, bearing: float, psi: float, d: float
+) -> None:
+    expected = reflect(range_m, bearing, psi, d)
+    got = mirror_points(np.array([range_m]), np.array([bearing]), np.array([2 * psi]), d)[0]
+    np.testing.assert_allclose(got, expected, atol=1e-9)
+
+
+def test_eq4_typo_is_corrected() -> None:
+    # The paper prints z = (r cos θ − d) sin θ; the geometry gives sin φ. Here they differ.
+    r, theta, phi, d = 4.0, math.radians(30), math.radians(60), 0.1
+    point = mirror_points(np.array([r]), np.array([theta]), np.array([phi]), d)[0]
+    assert point[2] == pytest.approx((r * math.cos(theta) - d) * math.sin(phi))
+    assert point[2] != pytest.approx((r * math.cos(theta) - d) * math.sin(theta), abs=0.1)
+    assert point[0] == pytest.approx(d + (r * math.cos(theta) - d) * math.cos(phi))
+    assert point[1] == pytest.approx(r * math.sin(theta))
+
+
+def test_motor_fit_is_robust_to_missed_and_spurious_edges() -> None:
+    rng = np.random.default_rng(4)
+    period = 0.5 * 1.012  # the motor runs 1.2 % slow
+    turns = np.arange(80)
+    turns = turns[rng.random(80) > 0.3]  # 30 % of the edges missed
+    edges = 0.3 + turns * period + rng.uniform(-0.04, 0.04, len(turns))  # ±half a scan
+    spurious = rng.uniform(edges[0], edges[-1], 6)
+    fit = fit_motor(np.concatenate([edges, spurious]), nominal_period_s=0.5)
+    assert fit.period_s == pytest.approx(period, rel=0.002)
+    assert fit.edges_used >= len(edges) - 2
+    assert fit.edges_rejected >= 4
+    assert fit.residual_rms_s < 0.03
+
+
+def test_motor_fit_needs_edges() -> None:
+    with pytest.raises(SensorError, match="at least 3 arm edges"):
+        fit_motor(np.array([0.0, 0.5]), 0.5)
+
+
+def test_scan_times_unwrap_the_turn_counter() -> None:
+    from sensors.lms200.protocol import TURN_S, Scan
+
+    turns = np.array([0, 6, 12, 300, 306, 1000])
+    stamps = 5.0 + turns * TURN_S + np.array([0.01, 0.03, 0.0, 0.02, 0.05, 0.01])
+    scans = [
+        Scan(np.zeros(1), np.zeros(1), np.zeros(1, np.uint8), np.zeros(1, np.uint8), 0.001,
+             scan_index=int(t % 256), stamp_s=float(s))
+        for t, s in zip(turns, stamps, strict=True)
+    ]  # fmt: skip
+    times = scan_times(scans)
+    np.testing.assert_allclose(np.diff(times), np.diff(turns) * TURN_S, atol=1e-12)
+    assert (times <= stamps + 1e-12).all()
+    assert np.min(stamps - times) == pytest.approx(0.0, abs=1e-12)
+
+
+@pytest.fixture(scope="module")
+def essex_scene() -> RaycastScene:
+    return RaycastScene(build_mesh(load_world(resolve_builtin("worlds", "essex_lab"))))
+
+
+def simulate(scene: RaycastScene, *, drop: float, seconds: float, seed: int = 0,
+             pose: tuple[float, float, float] = (6.0, 4.5, 0.3)):  # type: ignore[no-untyped-def]  # fmt: skip
+    scanner = SimulatedScanner(
+        GEOMETRY, motor_period_s=0.5 * 1.008, arm_phase_time_s=0.137, edge_on_turn=21,
+        arm_drop_fraction=drop, seed=seed,
+    )  # fmt: skip
+    times = telegram_times(0.0, seconds, 38400, 101, 1.0)
+    truth = scanner.scan(
+        scene, robot_pose_matrix(*pose, 0.1, 0.45), times, np.random.default_rng(seed)
+    )
+    parser = StreamParser()
+    decoded = [
+        decode_scan(e, 1)
+        for stamp, chunk in scan_stream(truth)
+        for e in parser.feed(chunk, stamp)
+        if isinstance(e, Telegram)
+    ]
+    return scanner, truth, decoded
+
+
+def test_simulated_sweep_to_3d_points_matches_ray_cast_truth(essex_scene: RaycastScene) -> None:
+    scanner, truth, decoded = simulate(essex_scene, drop=0.1, seconds=40.0)
+    assert len(decoded) == len(truth.times_s) == 500
+    times = scan_times(decoded)
+    estimate = estimate_mirror(decoded, times, GEOMETRY)
+    assert estimate.fine_phase
+    assert estimate.motor_period_s == pytest.approx(scanner.motor_period_s, rel=0.005)
+    sweeps = assemble_sweeps(decoded, times, estimate)
+    assert len(sweeps) == 2  # 40 s: two half mirror turns
+    for sweep in sweeps:
+        rows = np.searchsorted(times, sweep.stamp_s)
+        cols = np.round(np.degrees(sweep.bearing_rad) + 50).astype(int)
+        expected = truth.truth_scanner[rows, cols]
+        assert np.isfinite(expected).all()
+        error = np.linalg.norm(sweep.points_scanner - expected, axis=1)
+        assert np.median(error) < 0.02
+        assert np.percentile(error, 95) < 0.03
+        # Blind spots are gone: no arm samples, no edge-on elevations, nothing behind the mirror.
+        assert np.degrees(sweep.bearing_rad).min() >= -50 + GEOMETRY.arm_samples - 1e-9
+        assert np.abs(sweep.elevation_rad).min() >= 2 * GEOMETRY.edge_on_half_width_rad
+        assert (np.abs(sweep.elevation_rad) <= math.pi / 2 + 1e-9).all()
+        assert len(sweep) > 10_000
+        assert sweep.end_s - sweep.start_s == pytest.approx(10.0, abs=0.3)
+
+
+def test_motor_rate_within_half_a_percent_with_a_tenth_of_the_edges_dropped(
+    essex_scene: RaycastScene,
+) -> None:
+    for seed in range(3):
+        scanner, _, decoded = simulate(essex_scene, drop=0.1, seconds=20.0, seed=seed)
+        estimate = estimate_mirror(decoded, scan_times(decoded), GEOMETRY)
+        assert estimate.motor_rate_hz == pytest.approx(1 / scanner.motor_period_s, rel=0.005)
+
+
+def test_elevation_follows_the_true_mirror(essex_scene: RaycastScene) -> None:
+    _scanner, truth, decoded = simulate(essex_scene, drop=0.0, seconds=20.0)
+    times = scan_times(decoded)
+    estimate = estimate_mirror(decoded, times, GEOMETRY)
+    phi = elevation_at(times, estimate)
+    valid = np.abs(truth.elevation_rad) < math.radians(85)
+    error = np.angle(np.exp(1j * (phi - truth.elevation_rad)))[valid]
+    assert np.degrees(np.abs(error)).max() < 0.3
+
+
+def test_no_edge_on_signature_is_an_error(essex_scene: RaycastScene) -> None:
+    _, _, decoded = simulate(essex_scene, drop=0.0, seconds=4.0)  # a quarter of a sweep
+    times = scan_times(decoded)
+    with pytest.raises(SensorError, match="no edge-on signature"):
+        estimate_mirror(decoded[:30], times[:30], GEOMETRY)
