@@ -161,8 +161,8 @@ class SimulatedScanner:
         cos_t, sin_t = np.cos(theta), np.sin(theta)
         to_mirror = d / cos_t  # the beam's path to the mirror
 
-        origins = np.broadcast_to(np.column_stack([np.full(n_beams, d), d * sin_t / cos_t,
-                                                   np.zeros(n_beams)]), (n_scans, n_beams, 3))  # fmt: skip
+        at_mirror = np.column_stack([np.full(n_beams, d), d * sin_t / cos_t, np.zeros(n_beams)])
+        origins = np.broadcast_to(at_mirror, (n_scans, n_beams, 3))
         directions = np.stack(
             [np.outer(np.cos(phi), cos_t), np.broadcast_to(sin_t, (n_scans, n_beams)),
              np.outer(np.sin(phi), cos_t)], axis=-1,
