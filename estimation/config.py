@@ -159,9 +159,11 @@ class BeaconConfig(_Section):
     offset_m: float = Field(
         0.25, gt=0, description="d of eq. 1-2: straight ahead of the scanner origin"
     )
-    height_m: float = Field(0.9, gt=0, description="centre of the cylinder above the floor")
+    height_m: float = Field(
+        1.6, gt=0, description="centre above the floor; high enough to clear the edge-on blind band"
+    )
     radius_m: float = Field(0.1, gt=0)
-    length_m: float = Field(0.4, gt=0, description="vertical extent of the reflective band")
+    length_m: float = Field(0.6, gt=0, description="vertical extent of the reflective band")
     blind_wedge_deg: float = Field(
         20.0, ge=0, lt=180, description="forward wedge where beacons cannot be seen"
     )

@@ -43,9 +43,9 @@ class RobotBody:
     body_height_m: float = 0.35
     scanner_x_m: float = 0.1
     beacon_offset_m: float = 0.25  # ahead of the scanner origin
-    beacon_height_m: float = 0.9  # centre
+    beacon_height_m: float = 1.6  # centre
     beacon_radius_m: float = 0.1
-    beacon_length_m: float = 0.4
+    beacon_length_m: float = 0.6
 
     def solids(self, name: str, x_m: float, y_m: float, yaw_rad: float) -> list[dict[str, object]]:
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)

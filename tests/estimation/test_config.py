@@ -104,7 +104,7 @@ def test_integers_are_accepted_for_floats(tmp_path: Path) -> None:
         ("graph: {robust: tukey}\n", r"graph\.robust: Input should be 'gnc_tls', 'huber', 'cauchy' or 'none' \(got 'tukey'\)"),
         ("search: {window_m: 50.0}\n", r"search: window_m \(50\.0\) must not exceed max_window_m \(40\.0\)"),
         ("mirror: {elevation_min_deg: 10, elevation_max_deg: 0}\n", r"mirror: elevation_min_deg \(10\.0\) must be below"),
-        ("beacon: {height_m: 0.4}\n", r"beacon \(height_m 0\.4, length_m 0\.4\) must sit above the scanner"),
+        ("beacon: {height_m: 0.4}\n", r"beacon \(height_m 0\.4, length_m 0\.6\) must sit above the scanner"),
     ],
 )  # fmt: skip
 def test_rejections_name_the_key_and_value(tmp_path: Path, text: str, message: str) -> None:
