@@ -46,7 +46,7 @@ class BeaconRejection:
 def fit_circle_fixed_radius(
     xy: np.ndarray, radius_m: float, iterations: int = 20
 ) -> tuple[np.ndarray, float]:
-    """Centre of the circle of radius ``radius_m`` that best fits (N, 2) points seen from the origin.
+    """Centre of the radius-``radius_m`` circle that best fits (N, 2) points seen from the origin.
 
     Gauss–Newton on Σ (|p − c| − R)², started a radius beyond the points' centroid (the
     scanner sees the near side of the cylinder). Returns (centre, RMS residual).
@@ -126,8 +126,8 @@ def detect_beacons(
             # other parts may be hidden in a blind spot, so the visible extent is not enough).
             extent = float(np.ptp(cluster[:, 2]))
             reject(
-                f"{outside} flagged returns beyond the beacon's height band (extent {extent:.2f} m):"
-                " a reflective post or sign"
+                f"{outside} flagged returns beyond the beacon's height band "
+                f"(extent {extent:.2f} m): a reflective post or sign"
             )
             continue
         width = float(np.max(np.linalg.norm(band[:, None, :2] - band[None, :, :2], axis=2)))
