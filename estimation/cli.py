@@ -214,6 +214,136 @@ def lms_decode(
         )
 
 
+PoseOption = Annotated[
+    tuple[float, float, float],
+    typer.Option("--pose", help="Robot pose in the world: X_M Y_M YAW_DEG."),
+]
+
+
+@lms_app.command("emulate")
+@cli_errors
+def lms_emulate(
+    world: Annotated[
+        str, typer.Option(help="A built-in world name or a world YAML file.")
+    ] = "essex_lab",
+    pose: PoseOption = (6.0, 4.5, 90.0),
+    power_on_baud: Annotated[int, typer.Option(help="Rate after power-on.")] = 9600,
+    seconds: Annotated[
+        float, typer.Option(help="Run this long, then stop (0: until interrupted).")
+    ] = 0.0,
+    seed: Annotated[int, typer.Option(help="Seed of the simulated noise and mechanics.")] = 0,
+    config: ConfigOption = None,
+) -> None:
+    """An LMS 200 on a pseudo-terminal, scanning a simulated world; prints its device path."""
+    import math
+    import time
+
+    from estimation.resources import resolve_builtin
+    from estimation.rig import simulated_scan_source
+    from sensors.lms200.emulator import Lms200Emulator
+    from sensors.sim.world import load_world
+
+    cfg = _config(config)
+    model = load_world(resolve_builtin("worlds", world))
+    if model.room_at(pose[:2]) is None:
+        raise ConfigError(
+            f"pose ({pose[0]:g}, {pose[1]:g}) lies outside every room of {model.name}"
+        )
+    source = simulated_scan_source(model, (pose[0], pose[1], math.radians(pose[2])), cfg, seed)
+    emulator = Lms200Emulator(source, power_on_baud=power_on_baud, password=cfg.serial.password)
+    path = emulator.start()
+    typer.echo(path)
+    typer.echo(
+        f"coopmap: LMS 200 emulator on {path} (power-on {power_on_baud} Bd), world {model.name}, "
+        f"robot at x={pose[0]:g} m, y={pose[1]:g} m, yaw={pose[2]:g}°; Ctrl-C stops it",
+        err=True,
+    )
+    sys.stdout.flush()
+    try:
+        deadline = time.monotonic() + seconds if seconds > 0 else math.inf
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emulator.close()
+    state = emulator.state
+    typer.echo(
+        f"coopmap: emulator stopped after {state.commands} commands, {state.scans_sent} scans",
+        err=True,
+    )
+
+
+@lms_app.command("record")
+@cli_errors
+def lms_record(
+    port: Annotated[str, typer.Option(help="Device path or pyserial URL (socket://, loop://).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Capture file to create.")],
+    scans: Annotated[int, typer.Option(help="Stop after this many scans (0: no limit).")] = 0,
+    seconds: Annotated[float, typer.Option(help="Stop after this long (0: no limit).")] = 0.0,
+    config: ConfigOption = None,
+) -> None:
+    """Start an LMS 200 (or the emulator) and record its raw byte stream with receive times."""
+    import time
+
+    from estimation.rig import driver_from_config
+    from sensors.lms200.capture import CaptureWriter
+
+    cfg = _config(config)
+    writer = CaptureWriter(out, {"port": port, "baud_rate": cfg.serial.baud_rate})
+    started = time.monotonic()
+    driver = driver_from_config(
+        cfg, port, tap=lambda stamp, chunk: writer.write(stamp - started, chunk)
+    )
+    count = 0
+    try:
+        info = driver.start()
+        typer.echo(
+            f"coopmap: recording {info.type_text} on {port} at {info.baud_rate} Bd", err=True
+        )
+        deadline = started + seconds if seconds > 0 else float("inf")
+        for _ in driver.scans():
+            count += 1
+            if (scans and count >= scans) or time.monotonic() >= deadline:
+                break
+            if count % 50 == 0:
+                writer.flush()
+    except KeyboardInterrupt:
+        pass
+    except Exception:
+        driver.close()
+        # Keep what was recorded before the failure; leave nothing if nothing was.
+        if count == 0:
+            writer.discard()
+        else:
+            kept = writer.close()
+            typer.echo(f"coopmap: kept {kept} ({count} scans before the failure)", err=True)
+        raise
+    driver.close()
+    path = writer.close()
+    typer.echo(f"wrote {path} ({writer.bytes_written:,} bytes, {count} scans)")
+
+
+@bench_app.command("scan")
+@cli_errors
+def bench_scan(json_out: JsonOption = False, config: ConfigOption = None) -> None:
+    """Decode + 3D conversion of one full 3D scan (≈250 telegrams), against its 20 s."""
+    import json
+
+    from estimation.bench_scan import run_scan_benchmark
+
+    result = run_scan_benchmark(_config(config))
+    if json_out:
+        typer.echo(json.dumps(result))
+        return
+    typer.echo(
+        f"bench scan: one 3D scan ({result['telegrams']} telegrams, {result['bytes']:,} bytes, "
+        f"{result['points']:,} points) decoded and converted in {result['milliseconds']:.1f} ms "
+        f"(median of {result['repeats']}, max {result['milliseconds_max']:.1f} ms); the scanner "
+        f"takes {result['sweep_seconds']:.1f} s: {result['ratio']:,.0f}× real time"
+    )
+
+
 def _telegram_line(record: dict[str, object]) -> str:
     kind = str(record["kind"])
     head = f"{record['offset']:>10}  {kind:<12}"

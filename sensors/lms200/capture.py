@@ -97,6 +97,13 @@ class CaptureWriter:
             os.replace(self.partial, self.path)
         return self.path
 
+    def discard(self) -> None:
+        """Abandon the recording: remove the ``.partial`` file, publish nothing."""
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+            self.partial.unlink(missing_ok=True)
+
     def __enter__(self) -> CaptureWriter:
         return self
 

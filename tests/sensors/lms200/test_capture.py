@@ -156,3 +156,9 @@ def test_lms_decode_cli_errors(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["lms", "decode", str(dump), "--direction", "up"])
     assert result.exit_code == 2
     assert "direction must be one of" in result.stderr
+
+
+def test_discarded_recording_leaves_nothing(tmp_path: Path) -> None:
+    writer = CaptureWriter(tmp_path / "x.cap")
+    writer.discard()
+    assert list(tmp_path.iterdir()) == []
