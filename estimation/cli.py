@@ -12,7 +12,7 @@ import functools
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
@@ -344,16 +344,16 @@ def bench_scan(json_out: JsonOption = False, config: ConfigOption = None) -> Non
     )
 
 
-def _telegram_line(record: dict[str, object]) -> str:
+def _telegram_line(record: dict[str, Any]) -> str:
     kind = str(record["kind"])
     head = f"{record['offset']:>10}  {kind:<12}"
     if "code" in record:
-        head += f" {int(record['code']):02X}"  # type: ignore[call-overload]
+        head += f" {int(record['code']):02X}"
     if kind == "scan":
         ranges = record["ranges_m"]
         assert isinstance(ranges, list)
         valid = sum(r is not None for r in ranges)
-        flagged = sum(1 for f in record["flags"] if f)  # type: ignore[attr-defined]
+        flagged = sum(1 for f in record["flags"] if f)
         index = record.get("scan_index")
         return (
             f"{head}  {len(ranges)} values, {valid} valid, {flagged} flagged, {record['unit']}"

@@ -332,7 +332,9 @@ def _frame_at(buf: np.ndarray, p: int, direction: int, max_len: int) -> int:  # 
 
 
 @njit(cache=True)
-def _scan_stream(buf: np.ndarray, direction: int, max_len: int, final: bool, report_failures: bool):  # type: ignore[no-untyped-def]  # pragma: no cover - numba
+def _scan_stream(  # pragma: no cover - numba
+    buf: np.ndarray, direction: int, max_len: int, final: bool, report_failures: bool
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, int, int, int]:
     """Find frames, ACK and NAK bytes in ``buf``.
 
     A frame that is not complete yet stops the scan (its bytes are kept for the next chunk)
