@@ -1,0 +1,65 @@
+"""What reaches the estimator: a stream of small, immutable events (DESIGN §8).
+
+Robots produce odometry, mutual beacon observations and global-localization results; whether
+they come from a recorded dataset, a simulation or robots over a network, the estimator sees
+only these four event types, in order. A pose is named by its robot (one letter) and its index.
+Poses are ``(x_m, y_m, yaw_rad)`` of the robot frame; deltas are in the previous pose's frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from estimation.posepdf import PosePdf
+
+__all__ = ["Event", "Localize", "Move", "Observe", "PoseRef", "Start"]
+
+PoseRef = tuple[str, int]
+"""(robot letter, pose index)."""
+
+
+@dataclass(frozen=True)
+class Start:
+    """The gauge: ``robot``'s pose ``index`` is at ``pose`` in the map frame (a prior)."""
+
+    robot: str
+    index: int
+    pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Move:
+    """``robot`` moved from its latest pose to pose ``index``; ``delta`` is T_prev_new
+    (x_m, y_m, yaw_rad) measured by odometry."""
+
+    robot: str
+    index: int
+    delta: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Observe:
+    """A mutual observation: ``observer`` (A) sees the beacon of ``observed`` (C) at
+    ``(a_m, alpha_rad)`` in A's scanner frame, and C sees A's beacon at ``(b_m, beta_rad)``."""
+
+    observer: PoseRef
+    observed: PoseRef
+    a_m: float
+    alpha_rad: float
+    b_m: float
+    beta_rad: float
+
+
+@dataclass(frozen=True)
+class Localize:
+    """A global-localization result: ``pdf`` over the pose of ``(robot, index)`` in the map frame
+    (``reference`` None: matched against a fixed prior map) or in the frame of the earlier
+    station ``reference`` (matched against the part of this mission's map it built)."""
+
+    robot: str
+    index: int
+    pdf: PosePdf
+    reference: PoseRef | None = None
+
+
+Event = Start | Move | Observe | Localize

@@ -1,0 +1,371 @@
+"""Batch (Levenberg–Marquardt, GNC) and incremental (iSAM2) smoothing of the pose graph.
+
+Both take their factors from one :class:`~estimation.graph.GraphBuilder`, so on the same events
+they solve the same problem and reach the same estimate. Estimates are ``{key: (x, y, yaw)}``.
+
+Robust estimation (DESIGN §5): in batch, ``"gnc_tls"`` runs graduated non-convexity with the
+truncated-least-squares loss (``gtsam.GncLMOptimizer``), with priors and odometry as known
+inliers; a mutual or global factor whose residual stays beyond the χ² quantile ``gnc_probability``
+ends with weight 0. GNC is a batch method: iSAM2 takes a Huber or Cauchy kernel, or none, and
+relies on the gates in front of the graph and the validator behind it.
+
+iSAM2 state is checkpointed as the estimate and the number of events consumed (atomically, in
+one ``.npz``); resuming replays the consumed events through a fresh builder (cheap: no solving),
+checks that they rebuild the same factors, and hands iSAM2 all factors at once, linearized at the
+saved estimate. Events after the checkpoint are then processed as usual, so none is lost.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import time
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2
+
+from estimation import se2
+from estimation.errors import EstimationError
+from estimation.events import Event
+from estimation.graph import (
+    FactorSpec,
+    GraphBuilder,
+    GraphSettings,
+    Increment,
+    RobustKernel,
+    check_constrained,
+    to_gtsam_graph,
+    to_gtsam_values,
+)
+from sensors.atomic import atomic_path
+
+__all__ = [
+    "BatchResult",
+    "IncrementalSmoother",
+    "RobustMode",
+    "extract_poses",
+    "factor_fingerprint",
+    "optimize_batch",
+]
+
+RobustMode = Literal["gnc_tls", "huber", "cauchy", "none"]
+_CHECKPOINT_VERSION = 1
+
+
+def extract_poses(values: gtsam.Values) -> dict[int, np.ndarray]:
+    """``{key: (x, y, yaw)}`` of every Pose2 in ``values``."""
+    keys = list(values.keys())
+    if not keys:
+        return {}
+    poses = gtsam.utilities.extractPose2(values)
+    return {int(k): poses[i].copy() for i, k in enumerate(keys)}
+
+
+@dataclass(frozen=True)
+class BatchResult:
+    """A batch solution. ``inliers[i]`` tells whether factor i kept its weight (always True
+    without GNC); ``covariances`` holds marginal covariances (tangent space) when asked for;
+    ``error`` is GTSAM's total error ``Σ ½ χ²`` of the inlier factors at the estimate."""
+
+    estimate: dict[int, np.ndarray]
+    inliers: np.ndarray
+    error: float
+    seconds: float
+    covariances: dict[int, np.ndarray] | None = None
+
+    @property
+    def outliers(self) -> list[int]:
+        return [int(i) for i in np.flatnonzero(~self.inliers)]
+
+
+def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-10)
+    return params
+
+
+def optimize_batch(
+    factors: Sequence[FactorSpec],
+    initial: Mapping[int, np.ndarray],
+    robust: RobustMode = "gnc_tls",
+    marginals: bool | Iterable[int] = False,
+    max_iterations: int = 100,
+    gnc_probability: float = 0.999,
+) -> BatchResult:
+    """Optimize the whole graph from ``initial``; raises ``EstimationError`` when a robot is
+    unconstrained or the optimizer fails. ``marginals``: True for every pose, or some keys."""
+    start = time.perf_counter()
+    check_constrained(factors, initial.keys())
+    kernel: RobustKernel = (
+        "huber" if robust == "huber" else "cauchy" if robust == "cauchy" else "none"
+    )
+    graph = to_gtsam_graph(factors, kernel)
+    values = to_gtsam_values(initial)
+    inliers = np.ones(len(factors), dtype=bool)
+    try:
+        if robust == "gnc_tls" and any(f.robust for f in factors):
+            params = gtsam.GncLMParams(_lm_params(max_iterations))
+            params.setLossType(gtsam.GncLossType.TLS)
+            params.setKnownInliers([i for i, f in enumerate(factors) if not f.robust])
+            optimizer = gtsam.GncLMOptimizer(graph, values, params)
+            optimizer.setInlierCostThresholdsAtProbability(gnc_probability)
+            result = optimizer.optimize()
+            inliers = np.asarray(optimizer.getWeights()) > 0.5
+            inliers = _readmit(factors, graph, result, inliers, gnc_probability)
+            result = gtsam.LevenbergMarquardtOptimizer(
+                _subgraph(graph, inliers), result, _lm_params(max_iterations)
+            ).optimize()
+        else:
+            result = gtsam.LevenbergMarquardtOptimizer(
+                graph, values, _lm_params(max_iterations)
+            ).optimize()
+    except RuntimeError as exc:
+        raise EstimationError(f"batch optimization failed: {exc}") from exc
+    kept = _subgraph(graph, inliers)
+    covariances = None
+    if marginals is not False:
+        wanted = list(initial.keys()) if marginals is True else list(marginals)
+        try:
+            solver = gtsam.Marginals(kept, result)
+            covariances = {k: np.asarray(solver.marginalCovariance(k)) for k in wanted}
+        except RuntimeError as exc:
+            raise EstimationError(f"marginal covariances failed: {exc}") from exc
+    return BatchResult(
+        estimate=extract_poses(result),
+        inliers=inliers,
+        error=float(kept.error(result)),
+        seconds=time.perf_counter() - start,
+        covariances=covariances,
+    )
+
+
+def _subgraph(graph: gtsam.NonlinearFactorGraph, keep: np.ndarray) -> gtsam.NonlinearFactorGraph:
+    kept = gtsam.NonlinearFactorGraph()
+    for i in np.flatnonzero(keep):
+        kept.add(graph.at(int(i)))
+    return kept
+
+
+def _readmit(
+    factors: Sequence[FactorSpec],
+    graph: gtsam.NonlinearFactorGraph,
+    result: gtsam.Values,
+    inliers: np.ndarray,
+    probability: float,
+) -> np.ndarray:
+    """Give back the factors GNC dropped that agree with the rest of the graph.
+
+    TLS judges a residual against the measurement's covariance alone. A factor that is the only
+    tie of a weakly constrained pose (a scan pose whose one mutual observation it is) can then be
+    dropped although nothing contradicts it. Readmit a dropped factor when its innovation — the
+    residual against the inliers' solution, with covariance ``H P Hᵀ + R`` from their marginals —
+    passes the same χ² quantile.
+    """
+    dropped = np.flatnonzero(~inliers)
+    if len(dropped) == 0:
+        return inliers
+    estimate = extract_poses(result)
+    limit = float(chi2.ppf(probability, 3))
+    try:
+        marginals = gtsam.Marginals(_subgraph(graph, inliers), result)
+    except RuntimeError:
+        return inliers  # the inliers alone leave something unconstrained: keep GNC's verdict
+    readmitted = inliers.copy()
+    for i in dropped:
+        spec = factors[int(i)]
+        residual = spec.residual(estimate)
+        if len(spec.keys) == 1:
+            S = np.asarray(marginals.marginalCovariance(spec.keys[0])) + spec.covariance
+        else:
+            k1, k2 = spec.keys
+            joint = marginals.jointMarginalCovariance([k1, k2])
+            P = np.block(
+                [
+                    [np.asarray(joint.at(k1, k1)), np.asarray(joint.at(k1, k2))],
+                    [np.asarray(joint.at(k2, k1)), np.asarray(joint.at(k2, k2))],
+                ]
+            )
+            relative = se2.between(estimate[k1], estimate[k2])
+            H = np.hstack([-se2.adjoint(se2.inverse(relative)), np.eye(3)])
+            S = H @ P @ H.T + spec.covariance
+        if float(residual @ np.linalg.solve(S, residual)) <= limit:
+            readmitted[i] = True
+    return readmitted
+
+
+def factor_fingerprint(factors: Sequence[FactorSpec]) -> str:
+    """A digest of the factors' kinds, keys and measurements (checks a resumed stream)."""
+    digest = hashlib.sha256()
+    for spec in factors:
+        digest.update(spec.kind.encode())
+        digest.update(np.asarray(spec.keys, dtype=np.uint64).tobytes())
+        digest.update(np.round(spec.measurement, 9).tobytes())
+    return digest.hexdigest()
+
+
+class IncrementalSmoother:
+    """iSAM2 over the event stream: each event's new factors and values, nothing else.
+
+    ``update_seconds`` and ``python_seconds`` record, per event, the time in ``ISAM2.update``
+    and the time spent in Python around it (the builder and making GTSAM objects).
+    """
+
+    def __init__(
+        self,
+        settings: GraphSettings | None = None,
+        relinearize_threshold: float = 0.01,
+        relinearize_skip: int = 1,
+        kernel: RobustKernel = "none",
+    ) -> None:
+        self.builder = GraphBuilder(settings)
+        self.kernel: RobustKernel = kernel
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = relinearize_skip
+        self._params = params
+        self.isam = gtsam.ISAM2(params)
+        self.update_seconds: list[float] = []
+        self.python_seconds: list[float] = []
+
+    @property
+    def events(self) -> int:
+        """Events consumed so far."""
+        return self.builder.events
+
+    def add(self, event: Event) -> Increment:
+        """Consume one event and update iSAM2 with what it adds."""
+        t0 = time.perf_counter()
+        increment = self.builder.add(event)
+        graph = to_gtsam_graph(increment.factors, self.kernel)
+        values = to_gtsam_values(increment.values)
+        t1 = time.perf_counter()
+        if graph.size() or values.size():
+            self._update(graph, values, f"event {increment.event}")
+        t2 = time.perf_counter()
+        self.python_seconds.append(t1 - t0)
+        self.update_seconds.append(t2 - t1)
+        return increment
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, what: str) -> None:
+        try:
+            self.isam.update(graph, values)
+        except RuntimeError as exc:
+            raise EstimationError(f"iSAM2 update at {what} failed: {exc}") from exc
+
+    def run(
+        self,
+        events: Iterable[Event],
+        checkpoint: Path | str | None = None,
+        checkpoint_every: int = 100,
+    ) -> IncrementalSmoother:
+        """Consume ``events``; with ``checkpoint``, save state every ``checkpoint_every`` events
+        and at the end."""
+        for event in events:
+            self.add(event)
+            if checkpoint is not None and self.events % checkpoint_every == 0:
+                self.save_checkpoint(checkpoint)
+        if checkpoint is not None:
+            self.save_checkpoint(checkpoint)
+        return self
+
+    def estimate(self) -> dict[int, np.ndarray]:
+        """The current estimate (fully back-substituted)."""
+        return extract_poses(self.isam.calculateBestEstimate())
+
+    def marginal_covariance(self, key: int) -> np.ndarray:
+        return np.asarray(self.isam.marginalCovariance(key))
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def save_checkpoint(self, path: Path | str) -> Path:
+        """Write the estimate and the event count atomically to ``path`` (.npz)."""
+        path = Path(path)
+        estimate = self.estimate()
+        keys = np.array(sorted(estimate), dtype=np.uint64)
+        with atomic_path(path) as tmp, tmp.open("wb") as handle:
+            np.savez(
+                handle,
+                version=np.array(_CHECKPOINT_VERSION),
+                events=np.array(self.events),
+                keys=keys,
+                poses=np.array([estimate[int(k)] for k in keys]).reshape(-1, 3),
+                factors=np.array(len(self.builder.factors)),
+                fingerprint=np.array(factor_fingerprint(self.builder.factors)),
+            )
+        return path
+
+    @classmethod
+    def restore(
+        cls,
+        path: Path | str,
+        events: Iterator[Event],
+        settings: GraphSettings | None = None,
+        relinearize_threshold: float = 0.01,
+        relinearize_skip: int = 1,
+        kernel: RobustKernel = "none",
+    ) -> IncrementalSmoother:
+        """A smoother in the checkpointed state; consumes exactly the checkpointed number of
+        events from ``events`` (the same stream, from its start), leaving the rest."""
+        path = Path(path)
+        if not path.is_file():
+            raise EstimationError(f"{path}: checkpoint not found")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                version = int(data["version"])
+                count = int(data["events"])
+                keys = [int(k) for k in data["keys"]]
+                poses = np.asarray(data["poses"], dtype=float)
+                n_factors = int(data["factors"])
+                fingerprint = str(data["fingerprint"])
+        except (OSError, ValueError, KeyError, EOFError) as exc:
+            raise EstimationError(f"{path}: not a readable checkpoint ({exc})") from exc
+        if version != _CHECKPOINT_VERSION:
+            raise EstimationError(f"{path}: checkpoint version {version} is not supported")
+        smoother = cls(settings, relinearize_threshold, relinearize_skip, kernel)
+        for event in itertools.islice(events, count):
+            smoother.builder.add(event)
+        builder = smoother.builder
+        if builder.events != count:
+            raise EstimationError(
+                f"{path}: checkpoint holds {count} events but the stream has only {builder.events}"
+            )
+        if len(builder.factors) != n_factors or factor_fingerprint(builder.factors) != fingerprint:
+            raise EstimationError(
+                f"{path}: the event stream does not rebuild the checkpointed graph "
+                f"({len(builder.factors)} factors, checkpoint {n_factors}); wrong stream or "
+                "settings"
+            )
+        if sorted(keys) != sorted(builder.guesses) or poses.shape != (len(keys), 3):
+            raise EstimationError(f"{path}: checkpoint poses do not match the rebuilt graph")
+        smoother._update(
+            to_gtsam_graph(builder.factors, kernel),
+            to_gtsam_values(dict(zip(keys, poses, strict=True))),
+            f"resume from {path}",
+        )
+        return smoother
+
+    @classmethod
+    def resume(
+        cls,
+        path: Path | str,
+        events: Iterable[Event],
+        settings: GraphSettings | None = None,
+        relinearize_threshold: float = 0.01,
+        relinearize_skip: int = 1,
+        kernel: RobustKernel = "none",
+        checkpoint_every: int = 100,
+    ) -> IncrementalSmoother:
+        """Restore from ``path`` and process the rest of ``events``, checkpointing as
+        :meth:`run` does."""
+        stream = iter(events)
+        smoother = cls.restore(
+            path, stream, settings, relinearize_threshold, relinearize_skip, kernel
+        )
+        return smoother.run(stream, checkpoint=path, checkpoint_every=checkpoint_every)
