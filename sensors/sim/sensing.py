@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sensors.frames import pose2_matrix, transform_points, transform_vectors
+from sensors.errors import SensorError
+from sensors.frames import pose2_matrix
 from sensors.lms200 import protocol as p
 from sensors.mirror import MirrorGeometry
 from sensors.sim.scene import RaycastScene
@@ -28,6 +29,7 @@ __all__ = [
     "RobotBody",
     "SimulatedScanner",
     "SimulatedScans",
+    "robot_cylinders",
     "robot_pose_matrix",
     "scan_stream",
     "telegram_times",
@@ -147,10 +149,19 @@ class SimulatedScanner:
         return blocking
 
     def scan(
-        self, scene: RaycastScene, T_map_scanner: np.ndarray, times_s: np.ndarray,
+        self,
+        scene: RaycastScene,
+        T_map_scanner: np.ndarray,
+        times_s: np.ndarray,
         rng: np.random.Generator,
-    ) -> SimulatedScans:  # fmt: skip
-        """Simulate the horizontal scans measured at ``times_s`` from a scanner at T_map_scanner."""
+        cylinders: np.ndarray | None = None,
+    ) -> SimulatedScans:
+        """Simulate the horizontal scans measured at ``times_s``.
+
+        ``T_map_scanner`` is one (4, 4) pose or one per scan (S, 4, 4) for a moving robot.
+        ``cylinders`` (S, K, 6) adds vertical cylinders per scan — other robots' bodies and
+        beacons, which move — as rows (x_m, y_m, radius_m, z_min_m, z_max_m, reflective).
+        """
         geometry = self.geometry
         times_s = np.asarray(times_s, dtype=float)
         theta = self.bearing_rad
@@ -164,19 +175,35 @@ class SimulatedScanner:
         at_mirror = np.column_stack([np.full(n_beams, d), d * sin_t / cos_t, np.zeros(n_beams)])
         origins = np.broadcast_to(at_mirror, (n_scans, n_beams, 3))
         directions = np.stack(
-            [np.outer(np.cos(phi), cos_t), np.broadcast_to(sin_t, (n_scans, n_beams)),
-             np.outer(np.sin(phi), cos_t)], axis=-1,
-        )  # fmt: skip
-        hits = scene.cast(
-            transform_points(T_map_scanner, origins.reshape(-1, 3)),
-            transform_vectors(T_map_scanner, directions.reshape(-1, 3)),
-            normals=False,
+            [
+                np.outer(np.cos(phi), cos_t),
+                np.broadcast_to(sin_t, (n_scans, n_beams)),
+                np.outer(np.sin(phi), cos_t),
+            ],
+            axis=-1,
         )
+        T = np.asarray(T_map_scanner, dtype=float)
+        if T.shape == (4, 4):
+            T = np.broadcast_to(T, (n_scans, 4, 4))
+        if T.shape != (n_scans, 4, 4):
+            raise SensorError(f"need one scanner pose or one per scan, got {T.shape}")
+        origins_map = np.einsum("sij,snj->sni", T[:, :3, :3], origins) + T[:, None, :3, 3]
+        directions_map = np.einsum("sij,snj->sni", T[:, :3, :3], directions)
+        hits = scene.cast(origins_map.reshape(-1, 3), directions_map.reshape(-1, 3), normals=False)
         path = hits.range_m.reshape(n_scans, n_beams)
-        true_range = to_mirror + path
-        truth = origins + directions * path[..., None]
         surface = hits.surface_id.reshape(n_scans, n_beams)
         reflective = scene.mesh.surface_flags("retroreflective")
+        hit_reflective = reflective[np.where(surface >= 0, surface, 0)] & (surface >= 0)
+        if cylinders is not None and np.asarray(cylinders).size:
+            t_cyl, cyl_reflective = _cylinder_hits(
+                origins_map, directions_map, np.asarray(cylinders)
+            )
+            nearer = t_cyl < path
+            path = np.where(nearer, t_cyl, path)
+            surface = np.where(nearer, -2, surface)  # −2: another robot
+            hit_reflective = np.where(nearer, cyl_reflective, hit_reflective)
+        true_range = to_mirror + path
+        truth = origins + directions * path[..., None]
 
         ranges = true_range + rng.normal(0.0, self.range_sigma_m, true_range.shape)
         codes = np.zeros((n_scans, n_beams), dtype=np.uint8)
@@ -184,7 +211,7 @@ class SimulatedScanner:
         hit = (
             np.isfinite(path) & (true_range <= self.max_range_m) & (true_range >= self.min_range_m)
         )
-        flags[hit] = np.where(reflective[np.where(hit, surface, 0)][hit], self.reflector_level, 0)
+        flags[hit & hit_reflective] = self.reflector_level
 
         # The backward half of each half-turn folds the plane onto the scanner: nothing returns.
         backward = (phi < geometry.elevation_min_rad) | (phi > geometry.elevation_max_rad)
@@ -210,6 +237,63 @@ class SimulatedScanner:
         surface = np.where(blocked, -1, surface)
         flags[~hit] = 0
         return SimulatedScans(times_s, theta, ranges, codes, flags, phi, truth, surface)
+
+
+def _cylinder_hits(
+    origins: np.ndarray, directions: np.ndarray, cylinders: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest hit of each ray (S, N) with its scan's vertical cylinders (S, K, 6), and whether
+    that cylinder is reflective; inf where none is hit. Sides and end caps both count."""
+    o = origins[:, :, None, :]
+    d = directions[:, :, None, :]
+    cx, cy, r, z0, z1, refl = (cylinders[:, None, :, k] for k in range(6))
+    ox, oy = o[..., 0] - cx, o[..., 1] - cy
+    dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
+    a = dx * dx + dy * dy
+    b = 2 * (ox * dx + oy * dy)
+    c = ox * ox + oy * oy - r * r
+    disc = b * b - 4 * a * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = np.sqrt(np.where(disc >= 0, disc, np.nan))
+        t_side = np.where(a > 1e-12, (-b - root) / (2 * a), np.nan)
+        z_side = o[..., 2] + t_side * dz
+        side_ok = (t_side > 0) & (z_side >= z0) & (z_side <= z1)
+        best = np.where(side_ok, t_side, np.inf)
+        for z_cap in (z0, z1):
+            t_cap = (z_cap - o[..., 2]) / dz
+            px, py = ox + t_cap * dx, oy + t_cap * dy
+            cap_ok = (t_cap > 0) & (px * px + py * py <= r * r)
+            best = np.minimum(best, np.where(cap_ok, t_cap, np.inf))
+    nearest = np.argmin(best, axis=2)[..., None]
+    t = np.take_along_axis(best, nearest, axis=2)[..., 0]
+    reflective = np.take_along_axis(np.broadcast_to(refl, best.shape), nearest, axis=2)[..., 0]
+    return t, (reflective > 0) & np.isfinite(t)
+
+
+def robot_cylinders(body: RobotBody, poses: np.ndarray) -> np.ndarray:
+    """(S, 2·R, 6) cylinder rows of R robots at poses (S, R, 3) = (x_m, y_m, yaw_rad) per scan."""
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim == 2:
+        poses = poses[None]
+    x, y, yaw = poses[..., 0], poses[..., 1], poses[..., 2]
+    ahead = body.scanner_x_m + body.beacon_offset_m
+    half = body.beacon_length_m / 2
+    ones, zeros = np.ones_like(x), np.zeros_like(x)
+    bodies = np.stack(
+        [x, y, body.footprint_radius_m * ones, zeros, body.body_height_m * ones, zeros], axis=-1
+    )
+    beacons = np.stack(
+        [
+            x + ahead * np.cos(yaw),
+            y + ahead * np.sin(yaw),
+            body.beacon_radius_m * ones,
+            (body.beacon_height_m - half) * ones,
+            (body.beacon_height_m + half) * ones,
+            ones,
+        ],
+        axis=-1,
+    )
+    return np.concatenate([bodies, beacons], axis=1)
 
 
 def scan_stream(
