@@ -1,0 +1,593 @@
+"""The 3D Bayesian occupancy grid (DESIGN §6, paper eq. 3), stored as log-odds in blocks.
+
+Each cell holds the log-odds of its probability of occupancy, 0 (P = 0.5) until observed, and
+is updated by adding the log-odds of the evidence (identical to the paper's eq. 3, see
+``mapping.logodds``), clamped to [l(clamp_min), l(clamp_max)] as OctoMap does so that the map
+stays updatable. The extent of the map is not known in advance: cells live in cubic blocks of
+``block_size_cells³`` that are created the first time a ray reaches them, found through a hash
+table of block coordinates. Memory follows the observed volume, not its bounding box.
+
+Cell (i, j, k) is the half-open cube ``origin + [i, i + 1) · resolution`` per axis; with the
+origin at 0 (the default) the lattice is OctoMap's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapping import _kernels as kernels
+from mapping.errors import MapError
+from mapping.logodds import logodds, probability
+
+__all__ = ["GridParams", "OccupancyGrid"]
+
+#: Cell coordinates beyond this many cells from the origin cannot be addressed (block keys).
+_INITIAL_BLOCKS = 128
+
+
+def _finite_positive(name: str, value: float) -> None:
+    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+        raise MapError(f"{name} must be a positive number, got {value!r}")
+
+
+def _open_probability(name: str, value: float) -> None:
+    if not (isinstance(value, int | float) and 0.0 < value < 1.0):
+        raise MapError(f"{name} must lie in (0, 1), got {value!r}")
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """Lattice and sensor model of a grid. Field names and defaults are those of the ``grid``
+    section of the configuration (OctoMap's defaults), so ``GridParams(**config.grid.model_dump())``
+    builds one; ``origin_m`` (the corner of cell (0, 0, 0), map frame) is 0 there.
+    """
+
+    resolution_m: float = 0.1
+    prob_hit: float = 0.7
+    prob_miss: float = 0.4
+    clamp_min: float = 0.1192
+    clamp_max: float = 0.971
+    occupied_threshold: float = 0.5
+    no_return_free_m: float = 4.0
+    block_size_cells: int = 16
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        _finite_positive("resolution_m", self.resolution_m)
+        for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max", "occupied_threshold"):
+            _open_probability(name, getattr(self, name))
+        if not self.prob_miss < 0.5 < self.prob_hit:
+            raise MapError(
+                f"need prob_miss < 0.5 < prob_hit, got {self.prob_miss} and {self.prob_hit}"
+            )
+        if not self.clamp_min < self.occupied_threshold < self.clamp_max:
+            raise MapError(
+                "need clamp_min < occupied_threshold < clamp_max, got "
+                f"{self.clamp_min}, {self.occupied_threshold}, {self.clamp_max}"
+            )
+        if not (math.isfinite(self.no_return_free_m) and self.no_return_free_m >= 0):
+            raise MapError(f"no_return_free_m must be ≥ 0, got {self.no_return_free_m!r}")
+        if not (isinstance(self.block_size_cells, int) and 2 <= self.block_size_cells <= 256):
+            raise MapError(
+                f"block_size_cells must be an integer in [2, 256], got {self.block_size_cells!r}"
+            )
+        origin = tuple(float(v) for v in self.origin_m)
+        if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
+            raise MapError(f"origin_m must be three finite numbers, got {self.origin_m!r}")
+        object.__setattr__(self, "origin_m", origin)
+
+    @property
+    def logodds_hit(self) -> float:
+        return float(logodds(self.prob_hit))
+
+    @property
+    def logodds_miss(self) -> float:
+        return float(logodds(self.prob_miss))
+
+    @property
+    def logodds_min(self) -> float:
+        return float(logodds(self.clamp_min))
+
+    @property
+    def logodds_max(self) -> float:
+        return float(logodds(self.clamp_max))
+
+    @property
+    def logodds_threshold(self) -> float:
+        return float(logodds(self.occupied_threshold))
+
+    def same_lattice(self, other: GridParams) -> bool:
+        """Whether two grids share resolution, origin and block size (and can be merged)."""
+        return (
+            self.resolution_m == other.resolution_m
+            and self.origin_m == other.origin_m
+            and self.block_size_cells == other.block_size_cells
+        )
+
+
+@dataclass
+class _Storage:
+    """The block pool, its hash table and the per-scan bits (see ``mapping._kernels``)."""
+
+    block_size: int
+    capacity: int
+    coords: np.ndarray = field(init=False)  # (capacity, 3) int64 block coordinates
+    logodds: np.ndarray = field(init=False)  # (capacity, bs³) float64, 0 until observed
+    known: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: observed
+    flags: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: updated this scan
+    block_scan: np.ndarray = field(init=False)  # (capacity,) int64 scan the flags belong to
+    count: np.ndarray = field(init=False)  # (1,) int64 blocks in use
+    updates: np.ndarray = field(init=False)  # (1,) int64 cell updates by scans so far
+    table: np.ndarray = field(init=False)  # (2, 2^bits) int64: keys, pool indices
+    table_bits: int = field(init=False)
+    lut: np.ndarray = field(init=False)  # (3, bs) in-block layout
+
+    def __post_init__(self) -> None:
+        cells = self.block_size**3
+        # Rows of blocks not yet created are left uninitialised: the kernels clear a block's
+        # rows when they create it, so growing the pool copies only the rows in use.
+        self.coords = np.zeros((self.capacity, 3), dtype=np.int64)
+        self.logodds = np.empty((self.capacity, cells), dtype=np.float64)
+        self.known = np.empty((self.capacity, -(-cells // 8)), dtype=np.uint8)
+        self.flags = np.empty_like(self.known)
+        self.block_scan = np.zeros(self.capacity, dtype=np.int64)
+        self.count = np.zeros(1, dtype=np.int64)
+        self.updates = np.zeros(1, dtype=np.int64)
+        self.table_bits = _table_bits(self.capacity)
+        self.table = np.full((2, 1 << self.table_bits), kernels.EMPTY_KEY, dtype=np.int64)
+        self.lut = kernels.layout_table(self.block_size)
+
+    @property
+    def shift(self) -> int:
+        return 64 - self.table_bits
+
+    @property
+    def used(self) -> int:
+        return int(self.count[0])
+
+    def grow(self, capacity: int | None = None) -> None:
+        """Double the pool (or grow it to ``capacity``), keeping every block."""
+        n = self.used
+        new = max(capacity or 0, 2 * self.capacity, 1)
+
+        def grown(old: np.ndarray) -> np.ndarray:
+            out = np.empty((new, *old.shape[1:]), dtype=old.dtype)
+            out[:n] = old[:n]
+            return out
+
+        self.coords, self.logodds = grown(self.coords), grown(self.logodds)
+        self.known, self.flags = grown(self.known), grown(self.flags)
+        self.block_scan = grown(self.block_scan)
+        self.capacity = new
+        self.table_bits = _table_bits(new)
+        self.table = kernels.rebuild_table(self.coords, n, self.table_bits)
+
+    def nbytes(self) -> int:
+        arrays = (self.coords, self.logodds, self.known, self.flags, self.block_scan, self.table)
+        return sum(int(a.nbytes) for a in arrays)
+
+
+#: The bitmap that de-duplicates a scan's updates near the sensor (see ``mapping._kernels``):
+#: 16 MB of address space, of which a scan touches the pages around its rays. All zeros
+#: between scans, so every grid shares it (kernels hold the GIL: one scan at a time).
+_SCAN_CUBE: list[np.ndarray] = []
+
+
+def _scan_cube() -> np.ndarray:
+    if not _SCAN_CUBE:
+        _SCAN_CUBE.append(np.zeros(kernels.CUBE_ARRAY_BYTES, dtype=np.uint8))
+    return _SCAN_CUBE[0]
+
+
+def _table_bits(capacity: int) -> int:
+    """Hash table size for a pool: at most half full."""
+    return max(4, math.ceil(math.log2(2 * capacity)))
+
+
+class OccupancyGrid:
+    """A 3D occupancy grid that grows on demand (DESIGN §6).
+
+    ``integrate_scan`` fuses one scan by exact voxel traversal; ``merge`` fuses another grid by
+    eq. 3; ``cells`` lists what is known. Coordinates are in the frame the grid was built in
+    (the map frame for a global map, the reference robot's frame for a local one).
+    """
+
+    def __init__(self, params: GridParams | None = None, *, capacity_blocks: int = _INITIAL_BLOCKS):
+        self.params = params if params is not None else GridParams()
+        self._store = _Storage(self.params.block_size_cells, max(1, int(capacity_blocks)))
+        self._scan_id = 0
+        # Cells farther than this from the origin cannot be packed into block keys.
+        self._max_cells = (kernels.BLOCK_OFFSET - 2) * self.params.block_size_cells
+
+    # -- properties -------------------------------------------------------------------------
+
+    @property
+    def resolution_m(self) -> float:
+        return self.params.resolution_m
+
+    @property
+    def origin_m(self) -> np.ndarray:
+        return np.asarray(self.params.origin_m, dtype=np.float64)
+
+    @property
+    def block_count(self) -> int:
+        """Blocks allocated so far."""
+        return self._store.used
+
+    @property
+    def cell_updates(self) -> int:
+        """Cell updates made by the scans integrated so far (each cell at most once a scan)."""
+        return int(self._store.updates[0])
+
+    @property
+    def scan_count(self) -> int:
+        """Scans integrated into this grid object."""
+        return self._scan_id
+
+    def known_count(self) -> int:
+        """Cells observed at least once."""
+        return int(np.count_nonzero(self._known_mask(self.block_count)))
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the grid's arrays (the block pool with its spare capacity, the table)."""
+        return self._store.nbytes()
+
+    def __repr__(self) -> str:
+        return (
+            f"OccupancyGrid(resolution_m={self.resolution_m}, blocks={self.block_count}, "
+            f"known={self.known_count()}, scans={self.scan_count})"
+        )
+
+    # -- coordinates ------------------------------------------------------------------------
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) int64 cell of each (N, 3) point."""
+        points = self._points(points, "points")
+        return np.floor((points - self.origin_m) * (1.0 / self.resolution_m)).astype(np.int64)
+
+    def cell_centers(self, cells: np.ndarray) -> np.ndarray:
+        """(N, 3) centres of (N, 3) cells, in the grid's frame."""
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+        return np.asarray(self.origin_m + (cells + 0.5) * self.resolution_m)
+
+    # -- updates ----------------------------------------------------------------------------
+
+    def integrate_scan(
+        self,
+        points: np.ndarray,
+        sensor_origin: np.ndarray,
+        no_return_directions: np.ndarray | None = None,
+    ) -> None:
+        """Fuse one scan: free evidence along every ray, occupied evidence at its end point.
+
+        ``points`` (N, 3) are the returns and ``sensor_origin`` (3,) the sensor position, both
+        in the grid's frame; ``no_return_directions`` (M, 3) are the directions of beams that
+        returned nothing, which give free evidence up to ``no_return_free_m``. Within the scan
+        every cell is updated at most once and an end point's cell is occupied even if another
+        ray passes through it, as OctoMap's ``insertPointCloud`` does. A ray's own end cell
+        gets no free evidence from it; nor does the cell where a no-return beam's cut-off falls.
+        """
+        hits = self._points(points, "points")
+        sensor = self._points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor")
+        free_ends = np.zeros((0, 3), dtype=np.float64)
+        cutoff = self.params.no_return_free_m
+        if no_return_directions is not None:
+            directions = np.asarray(no_return_directions, dtype=np.float64)
+            if directions.ndim != 2 or directions.shape[1] != 3:
+                raise MapError(f"no_return_directions must be (M, 3), got {directions.shape}")
+            norms = np.linalg.norm(directions, axis=1)
+            bad = ~np.isfinite(norms) | (norms == 0)
+            if bad.any():
+                first = int(np.flatnonzero(bad)[0])
+                raise MapError(
+                    f"no_return_directions[{first}] is not a direction: "
+                    f"{directions[first].tolist()}"
+                )
+            if cutoff > 0:
+                ends = sensor + directions * (cutoff / norms)[:, None]
+                free_ends = self._points(ends, "no-return cut-off points")
+        self._scan_id += 1
+        params, store = self.params, self._store
+        bs = params.block_size_cells
+        lg = bs.bit_length() - 1 if bs & (bs - 1) == 0 else -1
+        cube = _scan_cube()
+        phase, start = kernels.PHASE_HITS, 0
+        while True:
+            phase, start = kernels.integrate(
+                hits,
+                free_ends,
+                sensor[0],
+                self.origin_m,
+                1.0 / params.resolution_m,
+                cube,
+                store.table[0],
+                store.table[1],
+                store.shift,
+                store.coords,
+                store.count,
+                store.logodds,
+                store.known,
+                store.flags,
+                store.block_scan,
+                store.updates,
+                store.lut,
+                bs,
+                lg,
+                self._scan_id,
+                params.logodds_hit,
+                params.logodds_miss,
+                params.logodds_min,
+                params.logodds_max,
+                phase,
+                start,
+            )
+            if phase == kernels.PHASE_DONE:
+                return
+            try:
+                store.grow()
+            except BaseException:
+                _SCAN_CUBE.clear()  # it holds half a scan's bits: the next scan starts afresh
+                raise
+
+    def apply_evidence(self, cells: np.ndarray, evidence: np.ndarray) -> None:
+        """Update (N, 3) cells with measurement probabilities ``evidence`` (N,) by eq. 3.
+
+        Unlike a scan, a cell listed k times is updated k times, in order. Results are clamped.
+        """
+        cells = self._cells(cells)
+        evidence = np.asarray(evidence, dtype=np.float64).reshape(-1)
+        if len(evidence) != len(cells):
+            raise MapError(f"need one evidence value per cell: {len(evidence)} for {len(cells)}")
+        inside = (evidence > 0) & (evidence < 1)
+        if not inside.all():
+            bad = int(np.flatnonzero(~inside)[0])
+            raise MapError(f"evidence must lie in (0, 1), got {evidence[bad]!r} at index {bad}")
+        self._add(cells, logodds(evidence))
+
+    def merge(self, other: OccupancyGrid) -> None:
+        """Fuse ``other`` into this grid by eq. 3 (log-odds addition, clamped), cell by cell.
+
+        Both grids must share the lattice (resolution, origin, block size); bring a grid from
+        another frame over with ``mapping.fusion.transform_grid`` first.
+        """
+        if not self.params.same_lattice(other.params):
+            raise MapError(
+                "cannot merge grids on different lattices: "
+                f"{self._lattice_text()} and {other._lattice_text()}"
+            )
+        n, src = other.block_count, other._store
+        params, store = self.params, self._store
+        start = 0
+        while True:
+            start = kernels.merge_blocks(
+                src.coords[:n],
+                src.logodds[:n],
+                src.known[:n],
+                store.table[0],
+                store.table[1],
+                store.shift,
+                store.coords,
+                store.count,
+                store.logodds,
+                store.known,
+                store.block_scan,
+                params.logodds_min,
+                params.logodds_max,
+                start,
+            )
+            if start == n:
+                return
+            store.grow()
+
+    def copy(self) -> OccupancyGrid:
+        """An independent grid with the same cells."""
+        out = OccupancyGrid(self.params, capacity_blocks=max(1, self.block_count))
+        n = self.block_count
+        store = out._store
+        store.coords[:n] = self._store.coords[:n]
+        store.logodds[:n] = self._store.logodds[:n]
+        store.known[:n] = self._store.known[:n]
+        store.count[0] = n
+        store.table = kernels.rebuild_table(store.coords, n, store.table_bits)
+        return out
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every known cell: (N, 3) int64 indices and (N,) log-odds."""
+        n, bs = self.block_count, self.params.block_size_cells
+        known = self._known_mask(n)
+        block, flat = np.nonzero(known)
+        local = self._local_of_flat()[flat]
+        return self._store.coords[block] * bs + local, self._store.logodds[:n][known]
+
+    def logodds_at(self, cells: np.ndarray) -> np.ndarray:
+        """(N,) log-odds of (N, 3) cells, NaN where unknown."""
+        cells = self._cells(cells)
+        store = self._store
+        return np.asarray(
+            kernels.lookup_cells(
+                cells,
+                store.table[0],
+                store.table[1],
+                store.shift,
+                store.logodds,
+                store.known,
+                store.lut,
+                self.params.block_size_cells,
+            )
+        )
+
+    def probability_at(self, points: np.ndarray) -> np.ndarray:
+        """(N,) probability of occupancy at (N, 3) points; 0.5 where unknown."""
+        values = self.logodds_at(self.cell_of(points))
+        return probability(np.nan_to_num(values, nan=0.0))
+
+    def occupied(self, threshold: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Cells with P > ``threshold`` (default: the grid's): (N, 3) indices, (N,) P."""
+        cells, values = self.cells()
+        if threshold is None:
+            level = self.params.logodds_threshold
+        else:
+            _open_probability("threshold", threshold)
+            level = float(logodds(threshold))
+        keep = values > level
+        return cells[keep], probability(values[keep])
+
+    def bounds_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """Smallest and largest known cell index per axis; MapError when nothing is known."""
+        cells, _ = self.cells()
+        if len(cells) == 0:
+            raise MapError("the grid is empty: no cell has been observed")
+        return cells.min(axis=0), cells.max(axis=0)
+
+    # -- blocks (for file formats and resampling) ---------------------------------------------
+
+    def blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(B, 3) block coordinates and (B, bs, bs, bs) log-odds (NaN = unknown), x-major."""
+        n, bs = self.block_count, self.params.block_size_cells
+        order = self._flat_of_local().reshape(-1)
+        values = np.where(self._known_mask(n), self._store.logodds[:n], np.nan)
+        return self._store.coords[:n].copy(), values[:, order].reshape(n, bs, bs, bs)
+
+    @classmethod
+    def from_blocks(
+        cls, params: GridParams, coords: np.ndarray, values: np.ndarray
+    ) -> OccupancyGrid:
+        """A grid from (B, 3) unique block coordinates and (B, bs, bs, bs) log-odds.
+
+        NaN marks unknown cells; values are clamped to the grid's bounds.
+        """
+        bs = params.block_size_cells
+        coords = np.asarray(coords)
+        values = np.asarray(values, dtype=np.float64)
+        if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
+            raise MapError(f"block coordinates must be (B, 3) integers, got {coords.shape}")
+        if values.shape != (len(coords), bs, bs, bs):
+            raise MapError(
+                f"block values must be ({len(coords)}, {bs}, {bs}, {bs}), got {values.shape}"
+            )
+        limit = kernels.BLOCK_OFFSET - 2
+        if len(coords) and np.abs(coords).max() >= limit:
+            raise MapError(f"block coordinate {int(np.abs(coords).max())} beyond ±{limit}")
+        if len(np.unique(coords, axis=0)) != len(coords):
+            raise MapError("block coordinates are not unique")
+        finite = values[~np.isnan(values)]
+        if not np.all(np.isfinite(finite)):
+            raise MapError("block log-odds must be finite or NaN (unknown)")
+        grid = cls(params, capacity_blocks=max(1, len(coords)))
+        store = grid._store
+        n = len(coords)
+        store.coords[:n] = coords
+        order = grid._flat_of_local().reshape(-1)
+        flat_values = values.reshape(n, -1)
+        known = ~np.isnan(flat_values)
+        store.logodds[:n, order] = np.where(
+            known, np.clip(flat_values, params.logodds_min, params.logodds_max), 0.0
+        )
+        bits = np.zeros((n, bs**3), dtype=bool)
+        bits[:, order] = known
+        store.known[:n] = np.packbits(bits, axis=1, bitorder="little")
+        store.count[0] = n
+        store.table = kernels.rebuild_table(store.coords, n, store.table_bits)
+        return grid
+
+    @classmethod
+    def from_cells(cls, params: GridParams, cells: np.ndarray, values: np.ndarray) -> OccupancyGrid:
+        """A grid whose (N, 3) unique ``cells`` hold log-odds ``values`` (N,), clamped."""
+        grid = cls(params)
+        cells = grid._cells(cells)
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if len(values) != len(cells):
+            raise MapError(f"need one value per cell: {len(values)} for {len(cells)}")
+        if not np.all(np.isfinite(values)):
+            raise MapError("cell log-odds must be finite")
+        if len(cells):
+            blocks = np.unique(cells // params.block_size_cells, axis=0)
+            grid._store.grow(len(blocks))
+        grid._add(cells, values)
+        return grid
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def _known_mask(self, n: int) -> np.ndarray:
+        """(n, bs³) bool: which cells of the first n blocks are known, in storage order."""
+        cells = self.params.block_size_cells**3
+        bits = np.unpackbits(self._store.known[:n], axis=1, bitorder="little")
+        return np.asarray(bits[:, :cells].astype(bool))
+
+    def _flat_of_local(self) -> np.ndarray:
+        """(bs, bs, bs) storage offset of each in-block cell (x, y, z)."""
+        lut = self._store.lut
+        return np.asarray(lut[0][:, None, None] + lut[1][None, :, None] + lut[2][None, None, :])
+
+    def _local_of_flat(self) -> np.ndarray:
+        """(bs³, 3) in-block cell (x, y, z) of each storage offset."""
+        bs = self.params.block_size_cells
+        local = np.stack(np.meshgrid(*(np.arange(bs),) * 3, indexing="ij"), axis=-1)
+        out = np.empty((bs**3, 3), dtype=np.int64)
+        out[self._flat_of_local().reshape(-1)] = local.reshape(-1, 3)
+        return out
+
+    def _add(self, cells: np.ndarray, values: np.ndarray) -> None:
+        params, store = self.params, self._store
+        start = 0
+        while True:
+            start = kernels.add_cells(
+                cells,
+                values,
+                store.table[0],
+                store.table[1],
+                store.shift,
+                store.coords,
+                store.count,
+                store.logodds,
+                store.known,
+                store.block_scan,
+                store.lut,
+                params.block_size_cells,
+                params.logodds_min,
+                params.logodds_max,
+                start,
+            )
+            if start == len(cells):
+                return
+            store.grow()
+
+    def _lattice_text(self) -> str:
+        p = self.params
+        return (
+            f"(resolution {p.resolution_m} m, origin {list(p.origin_m)}, "
+            f"block {p.block_size_cells})"
+        )
+
+    def _points(self, points: np.ndarray, name: str) -> np.ndarray:
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise MapError(f"{name} must be (N, 3), got {points.shape}")
+        finite = np.isfinite(points).all(axis=1)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise MapError(f"{name}[{bad}] is not finite: {points[bad].tolist()}")
+        if len(points):
+            reach = np.abs(points - self.origin_m).max() / self.resolution_m
+            if reach >= self._max_cells:
+                raise MapError(
+                    f"{name} reach {reach * self.resolution_m:.4g} m from the grid origin, "
+                    f"beyond the {self._max_cells * self.resolution_m:.4g} m it can address"
+                )
+        return points
+
+    def _cells(self, cells: np.ndarray) -> np.ndarray:
+        cells = np.asarray(cells)
+        if cells.ndim != 2 or cells.shape[1] != 3:
+            raise MapError(f"cells must be (N, 3), got {cells.shape}")
+        if cells.dtype.kind not in "iu":
+            raise MapError(f"cells must be integers, got {cells.dtype}")
+        cells = np.ascontiguousarray(cells, dtype=np.int64)
+        if len(cells) and np.abs(cells).max() >= self._max_cells:
+            raise MapError(f"cell index {int(np.abs(cells).max())} beyond the addressable map")
+        return cells
