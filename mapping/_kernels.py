@@ -63,7 +63,7 @@ def pack_block(bx: int, by: int, bz: int) -> int:
 
 @njit(cache=True, inline="always")
 def _slot(key: int, shift: int) -> int:
-    return np.int64((np.uint64(key) * _HASH_MUL) >> np.uint64(shift))
+    return int(np.int64((np.uint64(key) * _HASH_MUL) >> np.uint64(shift)))
 
 
 @njit(cache=True, inline="always")

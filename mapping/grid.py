@@ -396,13 +396,27 @@ class OccupancyGrid:
 
     # -- queries ----------------------------------------------------------------------------
 
-    def cells(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every known cell: (N, 3) int64 indices and (N,) log-odds."""
+    def cells(self, z_range: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every known cell: (N, 3) int64 indices and (N,) log-odds.
+
+        ``z_range`` (k_first, k_last) keeps the cells of those layers only (and reads only the
+        blocks that hold them).
+        """
         n, bs = self.block_count, self.params.block_size_cells
-        known = self._known_mask(n)
+        rows = np.arange(n)
+        if z_range is not None:
+            k_first, k_last = z_range
+            bz = self._store.coords[:n, 2]
+            rows = rows[(bz * bs <= k_last) & (bz * bs + bs - 1 >= k_first)]
+        bits = np.unpackbits(self._store.known[rows], axis=1, bitorder="little")
+        known = bits[:, : bs**3].astype(bool)
         block, flat = np.nonzero(known)
-        local = self._local_of_flat()[flat]
-        return self._store.coords[block] * bs + local, self._store.logodds[:n][known]
+        found = self._store.coords[rows[block]] * bs + self._local_of_flat()[flat]
+        values = self._store.logodds[rows][known]
+        if z_range is not None:
+            keep = (found[:, 2] >= z_range[0]) & (found[:, 2] <= z_range[1])
+            found, values = found[keep], values[keep]
+        return found, values
 
     def logodds_at(self, cells: np.ndarray) -> np.ndarray:
         """(N,) log-odds of (N, 3) cells, NaN where unknown."""

@@ -2,6 +2,7 @@
 
 Besides x, y, z a cloud may carry 8-bit colours (red, green, blue) and any number of named
 scalar properties (e.g. ``probability`` of an occupied voxel, ``range_m`` of a laser return).
+``write_grid_ply`` exports an occupancy grid's occupied voxel centres that way.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from mapping.errors import MapError
+from mapping.grid import OccupancyGrid
 from sensors.atomic import atomic_path
 
-__all__ = ["PlyError", "read_ply", "write_ply"]
+__all__ = ["PlyError", "read_ply", "write_grid_ply", "write_ply"]
 
 _PLY_TYPES: dict[np.dtype, str] = {
     np.dtype("float32"): "float",
@@ -36,7 +39,7 @@ _NUMPY_TYPES: dict[str, np.dtype] = {name: dtype for dtype, name in _PLY_TYPES.i
 }
 
 
-class PlyError(ValueError):
+class PlyError(MapError):
     """A PLY file is malformed, truncated or of an unsupported kind."""
 
 
@@ -125,3 +128,13 @@ def read_ply(path: Path | str) -> dict[str, np.ndarray]:
         name: record[name].astype(record[name].dtype.newbyteorder("="))
         for name in dtype.names or ()
     }
+
+
+def write_grid_ply(path: Path | str, grid: OccupancyGrid, threshold: float | None = None) -> int:
+    """Write the centres of the grid's occupied cells (P > ``threshold``, default the grid's)
+    with their ``probability`` (float32) as a PLY; return how many were written."""
+    cells, probability = grid.occupied(threshold)
+    write_ply(
+        path, grid.cell_centers(cells), fields={"probability": probability.astype(np.float32)}
+    )
+    return len(cells)

@@ -1,0 +1,159 @@
+"""coopmap's native map file, ``map.npz``: versioned, compressed and lossless.
+
+A zip of numpy arrays (``numpy.savez_compressed``), readable without coopmap:
+
+=====================  ======================================================================
+``format``             the string ``coopmap.map``
+``version``            format version (this module writes and reads 1)
+``resolution_m``       cell edge
+``origin_m``           (3,) corner of cell (0, 0, 0)
+``block_size_cells``   edge of a storage block
+``prob_hit`` …         the sensor model and clamping: ``prob_hit``, ``prob_miss``, ``clamp_min``,
+                       ``clamp_max``, ``occupied_threshold``, ``no_return_free_m``
+``block_coords``       (B, 3) int64 block coordinates (block b covers cells
+                       ``block_coords[b] · block_size_cells + [0, block_size_cells)³``)
+``known``              (B, ⌈bs³/8⌉) uint8: bit j (little-endian bit order) of block b is set
+                       when its cell j is known; cell j = (x, y, z) with j = (x·bs + y)·bs + z
+``logodds``            (K,) float64: the log-odds of the known cells, block by block, in j order
+=====================  ======================================================================
+
+Values are stored exactly as held (float64), so a map round-trips bit for bit. Loading checks
+the format, the version and every shape, and raises ``MapError`` naming the file and the
+problem; writing is atomic (a crash never leaves a half-written map where the old one was).
+"""
+
+from __future__ import annotations
+
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mapping.errors import MapError
+from mapping.grid import GridParams, OccupancyGrid
+from sensors.atomic import atomic_path
+
+__all__ = ["MAP_FORMAT", "MAP_VERSION", "load_map", "save_map"]
+
+MAP_FORMAT = "coopmap.map"
+MAP_VERSION = 1
+_PARAM_KEYS = (
+    "resolution_m",
+    "prob_hit",
+    "prob_miss",
+    "clamp_min",
+    "clamp_max",
+    "occupied_threshold",
+    "no_return_free_m",
+)
+_KEYS = (
+    "format",
+    "version",
+    *_PARAM_KEYS,
+    "block_size_cells",
+    "origin_m",
+    "block_coords",
+    "known",
+    "logodds",
+)
+
+
+def save_map(path: Path | str, grid: OccupancyGrid) -> Path:
+    """Write ``grid`` to ``path`` (atomically) and return the path."""
+    path = Path(path)
+    params = grid.params
+    coords, values = grid.blocks()
+    flat = values.reshape(len(coords), -1)
+    known = ~np.isnan(flat)
+    arrays: dict[str, Any] = {
+        "format": np.array(MAP_FORMAT),
+        "version": np.array(MAP_VERSION, dtype=np.int64),
+        **{key: np.array(getattr(params, key), dtype=np.float64) for key in _PARAM_KEYS},
+        "block_size_cells": np.array(params.block_size_cells, dtype=np.int64),
+        "origin_m": np.array(params.origin_m, dtype=np.float64),
+        "block_coords": coords.astype(np.int64),
+        "known": np.packbits(known, axis=1, bitorder="little"),
+        "logodds": flat[known],
+    }
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        np.savez_compressed(handle, **arrays)
+    return path
+
+
+def _scalar(path: Path, data: dict[str, np.ndarray], key: str, kind: str) -> Any:
+    value = data[key]
+    if value.shape != () or value.dtype.kind not in kind:
+        raise MapError(f"{path}: {key!r} must be a scalar of kind {kind!r}, got {value.dtype}")
+    return value.item()
+
+
+def load_map(path: Path | str) -> OccupancyGrid:
+    """Read a map written by ``save_map``; MapError on anything unexpected."""
+    path = Path(path)
+    if not path.is_file():
+        raise MapError(f"{path}: no such map file")
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            missing = [key for key in _KEYS if key not in archive.files]
+            if "format" in missing or "version" in missing:
+                raise MapError(f"{path}: not a coopmap map (no format/version entry)")
+            data = {key: archive[key] for key in _KEYS if key in archive.files}
+    except MapError:
+        raise
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
+        raise MapError(f"{path}: not a readable coopmap map: {exc}") from None
+    if data["format"].shape != () or str(data["format"]) != MAP_FORMAT:
+        raise MapError(f"{path}: not a coopmap map (format {data['format']!r})")
+    version = _scalar(path, data, "version", "iu")
+    if version != MAP_VERSION:
+        raise MapError(
+            f"{path}: map format version {version} is not supported (this coopmap reads "
+            f"version {MAP_VERSION})"
+        )
+    if missing:
+        raise MapError(f"{path}: map is missing {', '.join(missing)}")
+    origin = data["origin_m"]
+    if origin.shape != (3,) or origin.dtype.kind != "f":
+        raise MapError(f"{path}: origin_m must be 3 floats, got shape {origin.shape}")
+    fields = {key: float(_scalar(path, data, key, "f")) for key in _PARAM_KEYS}
+    block_size = int(_scalar(path, data, "block_size_cells", "iu"))
+    try:
+        params = GridParams(
+            **fields,
+            block_size_cells=block_size,
+            origin_m=(float(origin[0]), float(origin[1]), float(origin[2])),
+        )
+    except MapError as exc:
+        raise MapError(f"{path}: {exc}") from None
+    bs = params.block_size_cells
+    coords, known_bits, values = data["block_coords"], data["known"], data["logodds"]
+    if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
+        raise MapError(f"{path}: block_coords must be (B, 3) integers, got {coords.shape}")
+    n_bytes = -(-(bs**3) // 8)
+    if known_bits.shape != (len(coords), n_bytes) or known_bits.dtype != np.uint8:
+        raise MapError(
+            f"{path}: known must be ({len(coords)}, {n_bytes}) uint8, got {known_bits.shape} "
+            f"{known_bits.dtype}"
+        )
+    known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].astype(bool)
+    if values.ndim != 1 or values.dtype != np.float64 or len(values) != int(known.sum()):
+        raise MapError(
+            f"{path}: logodds must hold one float64 per known cell ({int(known.sum())}), "
+            f"got {values.shape} {values.dtype}"
+        )
+    if not np.all(np.isfinite(values)):
+        raise MapError(f"{path}: logodds holds non-finite values")
+    low, high = params.logodds_min, params.logodds_max
+    if len(values) and (values.min() < low - 1e-9 or values.max() > high + 1e-9):
+        raise MapError(
+            f"{path}: logodds outside the clamping bounds [{low:.6g}, {high:.6g}]: "
+            f"[{values.min():.6g}, {values.max():.6g}]"
+        )
+    blocks = np.full(known.shape, np.nan)
+    blocks[known] = values
+    try:
+        return OccupancyGrid.from_blocks(params, coords, blocks.reshape(len(coords), bs, bs, bs))
+    except MapError as exc:
+        raise MapError(f"{path}: {exc}") from None

@@ -1,0 +1,386 @@
+"""OctoMap's binary tree files (``.bt``): read and write, so maps open in OctoMap's tools.
+
+A ``.bt`` file is a few ASCII header lines — ``# Octomap OcTree binary file``, then ``id``,
+``size`` (the number of tree nodes), ``res`` (the leaf edge in metres) and ``data`` — followed
+by the octree as a depth-first bit stream: each inner node is 2 bytes holding 2 bits per child
+(children 0–3 in the first byte, 4–7 in the second; bits 2j and 2j + 1 for child j mod 4):
+(1, 0) a free leaf, (0, 1) an occupied leaf, (1, 1) an inner node whose own 2 bytes follow
+(children in order, depth first), (0, 0) unknown. Child index bits 0, 1, 2 set the x, y, z key
+bit at that depth; the tree is 16 levels deep and keys are offset by 2^15, so a cell index i of
+a grid whose origin is 0 is key i + 32768, and a leaf at depth d is a cube of 2^(16 − d) cells.
+
+The format keeps only occupied/free per leaf (OctoMap reads occupied leaves at its upper
+clamping bound and free ones at its lower): it is lossy, which is why it is smaller than
+``map.npz``. Writing merges 8 equal leaves into their parent as OctoMap's pruning does.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from mapping.errors import MapError
+from mapping.grid import GridParams, OccupancyGrid
+from sensors.atomic import atomic_path
+
+__all__ = [
+    "BT_HEADER",
+    "BtTree",
+    "decode_bt",
+    "encode_bt",
+    "grid_from_bt",
+    "read_bt",
+    "write_bt",
+]
+
+BT_HEADER = "# Octomap OcTree binary file"
+TREE_DEPTH = 16
+KEY_OFFSET = 1 << (TREE_DEPTH - 1)
+_FREE, _OCCUPIED, _INNER = 1, 2, 3
+_MAX_HEADER_BYTES = 4096
+
+
+@dataclass(frozen=True)
+class BtTree:
+    """The leaves of an OctoMap tree.
+
+    ``keys`` (L, 3) int64 are the keys of each leaf's lowest corner cell, ``depth`` (L,) the
+    leaf's depth (16 = one cell), ``occupied`` (L,) its state.
+    """
+
+    resolution_m: float
+    tree_id: str
+    keys: np.ndarray
+    depth: np.ndarray
+    occupied: np.ndarray
+    node_count: int
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    @property
+    def edge_cells(self) -> np.ndarray:
+        """(L,) leaf edges in cells."""
+        return np.asarray(1 << (TREE_DEPTH - self.depth.astype(np.int64)))
+
+    def centers(self) -> np.ndarray:
+        """(L, 3) leaf centres in metres (OctoMap's coordinates)."""
+        half = self.edge_cells[:, None] / 2.0
+        return np.asarray((self.keys - KEY_OFFSET + half) * self.resolution_m)
+
+    def expand(self, z_range_cells: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Every cell the leaves cover: (N, 3) cell indices (key − 32768) and (N,) occupied.
+
+        ``z_range_cells`` (k_first, k_last) keeps only the cells of those layers.
+        """
+        cells, states = [], []
+        for d in np.unique(self.depth):
+            pick = self.depth == d
+            edge = 1 << (TREE_DEPTH - int(d))
+            lows = self.keys[pick] - KEY_OFFSET
+            occupied = self.occupied[pick]
+            zs = np.arange(edge)
+            if z_range_cells is not None:
+                k_first, k_last = z_range_cells
+                overlap = (lows[:, 2] + edge - 1 >= k_first) & (lows[:, 2] <= k_last)
+                lows, occupied = lows[overlap], occupied[overlap]
+            grid = np.stack(np.meshgrid(zs, zs, zs, indexing="ij"), axis=-1).reshape(-1, 3)
+            expanded = (lows[:, None, :] + grid[None]).reshape(-1, 3)
+            flags = np.repeat(occupied, len(grid))
+            if z_range_cells is not None:
+                keep = (expanded[:, 2] >= z_range_cells[0]) & (expanded[:, 2] <= z_range_cells[1])
+                expanded, flags = expanded[keep], flags[keep]
+            cells.append(expanded)
+            states.append(flags)
+        if not cells:
+            return np.zeros((0, 3), dtype=np.int64), np.zeros(0, dtype=bool)
+        return np.concatenate(cells).astype(np.int64), np.concatenate(states)
+
+
+@njit(cache=True)
+def _decode_stream(data: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int, int]:
+    """Walk the bit stream: (keys, depth, occupied, leaves, inner nodes, status).
+
+    status ≥ 0: the number of bytes used; −1 − pos: truncated at byte pos; −100000000 − pos:
+    an inner node below the deepest level at byte pos.
+    """
+    capacity = 4 * len(data) + 8
+    keys = np.empty((capacity, 3), dtype=np.int64)
+    depth = np.empty(capacity, dtype=np.int8)
+    occupied = np.empty(capacity, dtype=np.bool_)
+    words = np.zeros(TREE_DEPTH + 1, dtype=np.int64)
+    child = np.zeros(TREE_DEPTH + 1, dtype=np.int64)
+    node_key = np.zeros((TREE_DEPTH + 1, 3), dtype=np.int64)
+    leaves = 0
+    inner = 0
+    if len(data) < 2:
+        return keys[:0], depth[:0], occupied[:0], 0, 0, -1
+    words[0] = np.int64(data[0]) | (np.int64(data[1]) << 8)
+    pos = 2
+    inner = 1
+    level = 0
+    # Leaves of the node at `level` are recorded on entry; inner children are entered in order.
+    for c in range(8):
+        code = (words[0] >> (2 * c)) & 3
+        if 0 < code < _INNER:
+            bit = 1 << (TREE_DEPTH - 1)
+            keys[leaves, 0] = bit if c & 1 else 0
+            keys[leaves, 1] = bit if c & 2 else 0
+            keys[leaves, 2] = bit if c & 4 else 0
+            depth[leaves] = 1
+            occupied[leaves] = code == _OCCUPIED
+            leaves += 1
+    while level >= 0:
+        if child[level] == 8:
+            level -= 1
+            continue
+        c = child[level]
+        child[level] += 1
+        if (words[level] >> (2 * c)) & 3 != _INNER:
+            continue
+        if level + 1 >= TREE_DEPTH:
+            return keys[:leaves], depth[:leaves], occupied[:leaves], leaves, inner, -100000000 - pos
+        if pos + 2 > len(data):
+            return keys[:leaves], depth[:leaves], occupied[:leaves], leaves, inner, -1 - pos
+        bit = 1 << (TREE_DEPTH - 1 - level)
+        for axis in range(3):
+            node_key[level + 1, axis] = node_key[level, axis] | (bit if (c >> axis) & 1 else 0)
+        level += 1
+        words[level] = np.int64(data[pos]) | (np.int64(data[pos + 1]) << 8)
+        child[level] = 0
+        pos += 2
+        inner += 1
+        child_bit = 1 << (TREE_DEPTH - 1 - level)
+        for cc in range(8):
+            code = (words[level] >> (2 * cc)) & 3
+            if 0 < code < _INNER:
+                for axis in range(3):
+                    keys[leaves, axis] = node_key[level, axis] | (
+                        child_bit if (cc >> axis) & 1 else 0
+                    )
+                depth[leaves] = level + 1
+                occupied[leaves] = code == _OCCUPIED
+                leaves += 1
+    return keys[:leaves], depth[:leaves], occupied[:leaves], leaves, inner, pos
+
+
+def _parse_header(data: bytes, source: str) -> tuple[str, int, float, int]:
+    """(id, size, res, offset of the bit stream)."""
+    if not data.startswith(BT_HEADER.encode("ascii")):
+        raise MapError(f"{source}: not an OctoMap binary file (first line is not {BT_HEADER!r})")
+    tree_id: str | None = None
+    size: int | None = None
+    res: float | None = None
+    pos = data.index(b"\n") + 1 if b"\n" in data else len(data)
+    while True:
+        end = data.find(b"\n", pos, pos + _MAX_HEADER_BYTES)
+        if end < 0:
+            raise MapError(f"{source}: truncated or malformed header (no 'data' line)")
+        line = data[pos:end].decode("ascii", errors="replace").strip()
+        pos = end + 1
+        words = line.split()
+        if not words or words[0].startswith("#"):
+            continue
+        keyword = words[0]
+        if keyword == "data":
+            break
+        if len(words) < 2:
+            raise MapError(f"{source}: header line {line!r} has no value")
+        try:
+            if keyword == "id":
+                tree_id = words[1]
+            elif keyword == "size":
+                size = int(words[1])
+            elif keyword == "res":
+                res = float(words[1])
+        except ValueError:
+            raise MapError(f"{source}: bad header value in {line!r}") from None
+    if tree_id is None or size is None or res is None:
+        raise MapError(f"{source}: header lacks id, size or res")
+    if size < 0:
+        raise MapError(f"{source}: negative tree size {size}")
+    if not (math.isfinite(res) and res > 0):
+        raise MapError(f"{source}: resolution must be positive, got {res}")
+    return tree_id, size, res, pos
+
+
+def decode_bt(data: bytes, source: str = "<bytes>") -> BtTree:
+    """Decode the bytes of a ``.bt`` file; MapError (naming ``source``) when malformed."""
+    tree_id, size, res, offset = _parse_header(data, source)
+    if size == 0:
+        empty = np.zeros((0, 3), dtype=np.int64)
+        return BtTree(res, tree_id, empty, np.zeros(0, np.int8), np.zeros(0, bool), 0)
+    stream = np.frombuffer(data, dtype=np.uint8, offset=offset)
+    keys, depth, occupied, leaves, inner, status = _decode_stream(stream)
+    if status <= -100000000:
+        raise MapError(
+            f"{source}: corrupt tree: an inner node below depth {TREE_DEPTH} at byte "
+            f"{offset - 100000000 - status}"
+        )
+    if status < 0:
+        raise MapError(
+            f"{source}: truncated: the tree needs more than the {len(stream)} bytes after the "
+            f"header (stopped at byte {offset - 1 - status})"
+        )
+    if leaves + inner != size:
+        raise MapError(
+            f"{source}: corrupt tree: the header says {size} nodes, the data holds {leaves + inner}"
+        )
+    return BtTree(res, tree_id, keys, depth.astype(np.int8), occupied, leaves + inner)
+
+
+def read_bt(path: Path | str) -> BtTree:
+    """Read an OctoMap ``.bt`` file."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise MapError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return decode_bt(data, str(path))
+
+
+def _morton_keys(keys: np.ndarray) -> np.ndarray:
+    """48-bit codes whose 3-bit digits, most significant first, are the child indices."""
+    code = np.zeros(len(keys), dtype=np.int64)
+    for bit in range(TREE_DEPTH):
+        for axis in range(3):
+            code |= ((keys[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def encode_bt(cells: np.ndarray, occupied: np.ndarray, resolution_m: float) -> bytes:
+    """The ``.bt`` bytes of (N, 3) unique cells (indices on a lattice anchored at 0) with their
+    occupied/free states; 8 equal sibling leaves are merged into their parent (OctoMap's
+    pruning)."""
+    cells = np.asarray(cells, dtype=np.int64).reshape(-1, 3)
+    occupied = np.asarray(occupied, dtype=bool).reshape(-1)
+    if len(occupied) != len(cells):
+        raise MapError(f"need one state per cell: {len(occupied)} for {len(cells)}")
+    if not (math.isfinite(resolution_m) and resolution_m > 0):
+        raise MapError(f"resolution must be positive, got {resolution_m!r}")
+    keys = cells + KEY_OFFSET
+    if len(keys) and (keys.min() < 0 or keys.max() >= 2 * KEY_OFFSET):
+        raise MapError(
+            f"cells beyond OctoMap's ±{KEY_OFFSET} cells from the origin cannot be written"
+        )
+    codes = _morton_keys(keys)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    if len(codes) > 1 and np.any(codes[1:] == codes[:-1]):
+        raise MapError("cells are not unique")
+    states = np.where(occupied[order], _OCCUPIED, _FREE).astype(np.int64)
+    # Prune bottom-up: 8 siblings that are all leaves in one state become their parent.
+    leaf_codes: list[np.ndarray] = []
+    leaf_states: list[np.ndarray] = []
+    leaf_depths: list[np.ndarray] = []
+    for depth in range(TREE_DEPTH, 0, -1):
+        if depth == 1 or len(codes) == 0:
+            final = np.ones(len(codes), dtype=bool)
+        else:
+            parents = codes >> 3
+            starts = np.flatnonzero(np.r_[True, parents[1:] != parents[:-1]])
+            sizes = np.diff(np.r_[starts, len(codes)])
+            same = np.minimum.reduceat(states, starts) == np.maximum.reduceat(states, starts)
+            merge_group = (sizes == 8) & same
+            final = ~np.repeat(merge_group, sizes)
+        leaf_codes.append(codes[final])
+        leaf_states.append(states[final])
+        leaf_depths.append(np.full(int(final.sum()), depth))
+        if depth > 1 and len(codes):
+            codes = parents[starts[merge_group]]
+            states = states[starts[merge_group]]
+    all_codes = np.concatenate(leaf_codes)
+    all_states = np.concatenate(leaf_states)
+    all_depths = np.concatenate(leaf_depths)
+    if len(all_codes) == 0:
+        return _header("OcTree", 0, resolution_m)
+    # Inner nodes: every ancestor (depth 0 … d − 1) of every leaf; children's codes per node.
+    inner_codes, inner_depths, inner_words = [], [], []
+    children: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for depth in range(TREE_DEPTH - 1, -1, -1):
+        deeper_leaf = all_depths == depth + 1
+        child_codes = [all_codes[deeper_leaf]]
+        child_values = [all_states[deeper_leaf]]
+        if depth + 1 in children:
+            child_codes.append(children[depth + 1][0])
+            child_values.append(np.full(len(children[depth + 1][0]), _INNER))
+        kids = np.concatenate(child_codes)
+        values = np.concatenate(child_values)
+        if len(kids) == 0:
+            continue
+        parents = kids >> 3
+        unique, inverse = np.unique(parents, return_inverse=True)
+        words = np.zeros(len(unique), dtype=np.int64)
+        np.add.at(words, inverse, values << (2 * (kids & 7)))
+        children[depth] = (unique, words)
+        inner_codes.append(unique)
+        inner_depths.append(np.full(len(unique), depth))
+        inner_words.append(words)
+    codes_all = np.concatenate(inner_codes)
+    depths_all = np.concatenate(inner_depths)
+    words_all = np.concatenate(inner_words)
+    # Depth-first pre-order: sort by the code padded to full depth, ancestors first.
+    padded = codes_all << (3 * (TREE_DEPTH - depths_all))
+    preorder = np.lexsort((depths_all, padded))
+    stream = words_all[preorder].astype("<u2").tobytes()
+    return _header("OcTree", len(codes_all) + len(all_codes), resolution_m) + stream
+
+
+def _header(tree_id: str, size: int, resolution_m: float) -> bytes:
+    return (
+        f"{BT_HEADER}\n# (feel free to add / change comments, but leave the first line as it "
+        f"is!)\n#\n# written by coopmap\nid {tree_id}\nsize {size}\nres {resolution_m!r}\ndata\n"
+    ).encode("ascii")
+
+
+def write_bt(path: Path | str, grid: OccupancyGrid, threshold: float | None = None) -> Path:
+    """Write the known cells of ``grid`` as an OctoMap ``.bt`` (occupied: P > ``threshold``,
+    default the grid's), atomically. The grid's lattice must be OctoMap's (origin 0)."""
+    path = Path(path)
+    if any(v != 0.0 for v in grid.params.origin_m):
+        raise MapError(
+            f"{path}: OctoMap's lattice has its corner at the origin; this grid's is at "
+            f"{list(grid.params.origin_m)}"
+        )
+    cells, values = grid.cells()
+    if threshold is None:
+        level = grid.params.logodds_threshold
+    else:
+        level = float(np.log(threshold / (1.0 - threshold)))
+    data = encode_bt(cells, values > level, grid.resolution_m)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def grid_from_bt(
+    tree: BtTree,
+    params: GridParams | None = None,
+    *,
+    z_range_m: tuple[float, float] | None = None,
+) -> OccupancyGrid:
+    """An occupancy grid holding the tree's leaves, cell by cell, as OctoMap reads them:
+    occupied leaves at the upper clamping bound, free ones at the lower.
+
+    ``params`` supplies the sensor model and clamping (default: OctoMap's); its resolution is
+    replaced by the tree's and its origin must be 0. ``z_range_m`` (z_min, z_max) keeps only the
+    layers whose cell centres lie within [z_min, z_max) — a band without the whole building.
+    """
+    from dataclasses import replace
+
+    from mapping.band import band_layers
+
+    params = GridParams() if params is None else params
+    if any(v != 0.0 for v in params.origin_m):
+        raise MapError("a grid read from a .bt file has its lattice corner at the origin")
+    params = replace(params, resolution_m=tree.resolution_m)
+    z_range = None
+    if z_range_m is not None:
+        z_range = band_layers(0.0, tree.resolution_m, *z_range_m)
+    cells, occupied = tree.expand(z_range)
+    values = np.where(occupied, params.logodds_max, params.logodds_min)
+    return OccupancyGrid.from_cells(params, cells, values)
