@@ -184,6 +184,8 @@ class RobotConfig(_Section):
     body_height_m: float = Field(0.35, gt=0)
     scanner_x_m: float = Field(0.10, description="scanner origin ahead of the robot origin")
     scanner_height_m: float = Field(0.45, gt=0, description="scanner origin above the floor")
+    speed_m_s: float = Field(0.4, gt=0, le=5, description="driving speed in simulated missions")
+    turn_rate_deg_s: float = Field(45.0, gt=0, le=720, description="turning in place")
 
 
 class GridConfig(_Section):

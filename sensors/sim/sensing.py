@@ -203,7 +203,7 @@ class SimulatedScanner:
             surface = np.where(nearer, -2, surface)  # −2: another robot
             hit_reflective = np.where(nearer, cyl_reflective, hit_reflective)
         true_range = to_mirror + path
-        truth = origins + directions * path[..., None]
+        truth = origins + directions * np.where(np.isfinite(path), path, np.nan)[..., None]
 
         ranges = true_range + rng.normal(0.0, self.range_sigma_m, true_range.shape)
         codes = np.zeros((n_scans, n_beams), dtype=np.uint8)
