@@ -156,7 +156,7 @@ def _mapper_candidates(
     out = []
     for distance in np.linspace(band[0], band[1], 5):
         for side in (-1, 1):
-            for bearing_deg in (17, 25, 33, 41):
+            for bearing_deg in (16, 20, 25, 33, 41):
                 direction = ref[2] + side * math.radians(bearing_deg)
                 beacon = origin + distance * np.array([math.cos(direction), math.sin(direction)])
                 for turn in (-1, 1):
@@ -215,13 +215,21 @@ def plan_leapfrog(
     )
     for pose in poses.values():
         coverage.add(pose)
+    route = _Route(space, reachable, [np.array(w, dtype=float) for w in auto.route])
     steps: list[StepSpec] = []
     reference, mapper = names[0], names[1]
     for k in range(auto.stations):
         ref = poses[reference]
+        route.advance(ref)
+        if route.done:
+            break
         at: list[float] | None = None
         if k > 0:
-            heading = _best_heading(ref, poses[mapper], space, coverage, geometry, band)
+            heading = (
+                route.heading(ref)
+                if route.active
+                else _best_heading(ref, poses[mapper], space, coverage, geometry, band)
+            )
             if abs(math.remainder(heading - ref[2], 2 * math.pi)) > 1e-6:
                 ref = np.array([ref[0], ref[1], heading])
                 poses[reference] = ref
@@ -244,6 +252,8 @@ def plan_leapfrog(
                     continue
                 length = sum(float(np.linalg.norm(b - a)) for a, b in itertools.pairwise(legs))
                 score = coverage.gain(candidate) - 20.0 * length + rng.uniform(0, 1e-3)
+                if route.active:
+                    score = 0.05 * score - 100.0 * route.distance(candidate)
                 if score > best_score:
                     best, best_score = candidate, score
             if best is None:
@@ -260,13 +270,78 @@ def plan_leapfrog(
             break
         steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
         poses[mapper] = current
-        if coverage.fraction >= auto.coverage:
+        if not route.active and coverage.fraction >= auto.coverage:
             break
         # Leapfrog: the mapper stays as the next reference; the next robot maps around it.
         reference, mapper = mapper, names[(names.index(mapper) + 1) % len(names)]
         if mapper == reference:
             mapper = names[(names.index(reference) + 1) % len(names)]
     return steps
+
+
+class _Route:
+    """Waypoints followed in order; distances are shortest paths through free space."""
+
+    def __init__(
+        self, space: FreeSpace, reachable: np.ndarray, waypoints: list[np.ndarray]
+    ) -> None:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        self.space = space
+        self.waypoints = waypoints
+        self.next = 0
+        self.fields: list[np.ndarray] = []
+        if not waypoints:
+            return
+        h, w = reachable.shape
+        index = np.full((h, w), -1, dtype=np.int64)
+        cells = np.argwhere(reachable)
+        index[cells[:, 0], cells[:, 1]] = np.arange(len(cells))
+        rows, cols, weights = [], [], []
+        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            a = cells
+            b = cells + (dr, dc)
+            ok = (b[:, 0] >= 0) & (b[:, 0] < h) & (b[:, 1] >= 0) & (b[:, 1] < w)
+            a, b = a[ok], b[ok]
+            both = index[b[:, 0], b[:, 1]] >= 0
+            rows.append(index[a[both, 0], a[both, 1]])
+            cols.append(index[b[both, 0], b[both, 1]])
+            weights.append(np.full(both.sum(), math.hypot(dr, dc) * space.resolution_m))
+        graph = coo_matrix(
+            (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(len(cells), len(cells)),
+        ).tocsr()
+        for k, point in enumerate(waypoints):
+            if not space.is_free(point) or not reachable[space.cell(point)]:
+                raise SensorError(
+                    f"route waypoint {k} ({point[0]:g}, {point[1]:g}) is not reachable free space"
+                )
+            source = index[space.cell(point)]
+            field = np.full((h, w), np.inf)
+            field[cells[:, 0], cells[:, 1]] = dijkstra(graph, directed=False, indices=source)
+            self.fields.append(field)
+
+    @property
+    def active(self) -> bool:
+        return bool(self.waypoints) and not self.done
+
+    @property
+    def done(self) -> bool:
+        return bool(self.waypoints) and self.next >= len(self.waypoints)
+
+    def distance(self, pose: np.ndarray) -> float:
+        return float(self.fields[self.next][self.space.cell(pose[:2])])
+
+    def advance(self, pose: np.ndarray, reached_m: float = 2.5) -> None:
+        while self.active and self.distance(pose) < reached_m:
+            self.next += 1
+
+    def heading(self, pose: np.ndarray) -> float:
+        """Towards the next waypoint along the shortest path."""
+        legs = self.space.path(pose[:2], self.waypoints[self.next])
+        target = legs[1] if legs is not None and len(legs) > 1 else self.waypoints[self.next]
+        return math.atan2(target[1] - pose[1], target[0] - pose[0])
 
 
 def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverage: CoverageModel,

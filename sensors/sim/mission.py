@@ -99,6 +99,9 @@ class AutoSpec(_Model):
     scans_per_station: int = Field(3, ge=1, le=10)
     coverage: float = Field(0.9, gt=0, le=1)
     mapper_distance_m: Annotated[list[float], Field(min_length=2, max_length=2)] = [1.5, 4.5]
+    #: Optional waypoints (x_m, y_m) to follow in order, e.g. around a loop and back; with a
+    #: route, poses are chosen by progress along it rather than by coverage alone.
+    route: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = []
 
 
 class MissionSpec(_Model):
