@@ -301,7 +301,7 @@ class _Route:
         rows, cols, weights = [], [], []
         for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
             a = cells
-            b = cells + (dr, dc)
+            b = cells + np.array([dr, dc])
             ok = (b[:, 0] >= 0) & (b[:, 0] < h) & (b[:, 1] >= 0) & (b[:, 1] < w)
             a, b = a[ok], b[ok]
             both = index[b[:, 0], b[:, 1]] >= 0
