@@ -81,10 +81,10 @@ def test_free_space_respects_walls_doors_and_obstacles() -> None:
     assert not space.is_free((15.0, 10.0))  # the core between the office rows
     assert not space.is_free((0.1, 1.0))  # too close to a wall
     assert not space.is_free((-3.0, 1.0))  # outside every room
-    legs = space.path(np.array([1.0, 1.0]), np.array([3.5, 3.5]))  # into an office by its door
+    legs = space.path(np.array([1.0, 1.0]), np.array([4.0, 4.0]))  # into an office by its door
     assert legs is not None
     assert all(space.segment_free(a, b) for a, b in itertools.pairwise(legs))
-    assert any(abs(p[0] - 3.5) < 0.35 and abs(p[1] - 2.0) < 0.5 for p in legs)  # through the door
+    assert any(abs(p[0] - 4.0) < 0.35 and abs(p[1] - 2.5) < 0.5 for p in legs)  # through the door
     assert space.path(np.array([1.0, 1.0]), np.array([15.0, 10.0])) is None
     assert space.component_of((1.0, 1.0)).sum() > 0.3 * space.free.sum()
 
