@@ -7,7 +7,7 @@ no display needed — and written atomically.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["render_range_panorama", "render_world"]
+__all__ = ["render_map_cubes", "render_range_panorama", "render_trajectories", "render_world"]
 
 _DOOR_COLOR = "#e07b00"
 _WINDOW_COLOR = "#2aa6d6"
@@ -217,5 +217,72 @@ def render_range_panorama(
     ax.set_xlabel("azimuth (deg, counter-clockwise from forward)")
     ax.set_ylabel("elevation (deg)")
     ax.set_title(title)
+    _save(figure, path)
+    return path
+
+
+_ROBOT_COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e")
+
+
+def render_trajectories(
+    band: Any,
+    poses: dict[str, dict[int, np.ndarray]],
+    path: Path | str,
+    *,
+    truth: dict[str, dict[int, np.ndarray]] | None = None,
+    title: str = "ceiling band and stations",
+) -> Path:
+    """A 2D band (``mapping.band.Band``) with each robot's poses: estimate, and truth if given."""
+    path = Path(path)
+    x0, x1, y0, y1 = band.extent()
+    aspect = (y1 - y0) / max(x1 - x0, 1e-9)
+    figure = _new_figure(8.0, max(3.0, 8.0 * aspect) + 0.6)
+    ax = figure.subplots()
+    shown = np.where(band.known, band.occupancy, np.nan)
+    image = ax.imshow(shown, origin="lower", extent=(x0, x1, y0, y1), cmap="Greys", vmin=0,
+                      vmax=1, interpolation="nearest")  # fmt: skip
+    figure.colorbar(image, ax=ax, label="occupied share of the band", shrink=0.8)
+    for n, (robot, robot_poses) in enumerate(sorted(poses.items())):
+        color = _ROBOT_COLORS[n % len(_ROBOT_COLORS)]
+        order = sorted(robot_poses)
+        xy = np.array([robot_poses[i][:2] for i in order]).reshape(-1, 2)
+        yaw = np.array([robot_poses[i][2] for i in order])
+        ax.plot(xy[:, 0], xy[:, 1], "-o", color=color, markersize=4, label=f"{robot} (estimate)")
+        ax.quiver(xy[:, 0], xy[:, 1], np.cos(yaw), np.sin(yaw), color=color, scale=25, width=0.004)
+        if truth is not None and robot in truth:
+            t = np.array([truth[robot][i][:2] for i in order if i in truth[robot]]).reshape(-1, 2)
+            ax.plot(t[:, 0], t[:, 1], "x--", color=color, alpha=0.6, label=f"{robot} (truth)")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=7)
+    _save(figure, path)
+    return path
+
+
+def render_map_cubes(grid: Any, path: Path | str, *, threshold: float = 0.9,
+                     max_cubes: int = 60_000) -> Path:  # fmt: skip
+    """Occupied cells (P > ``threshold``) as cubes seen from above at an angle (paper Fig. 5a)."""
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the 3d projection
+
+    path = Path(path)
+    cells, _ = grid.occupied(threshold)
+    centers = grid.cell_centers(cells) if len(cells) else np.zeros((0, 3))
+    if len(centers) > max_cubes:
+        centers = centers[np.random.default_rng(0).choice(len(centers), max_cubes, replace=False)]
+    figure = _new_figure(9.0, 6.5)
+    ax = figure.add_subplot(projection="3d")
+    if len(centers):
+        size = 20 * grid.resolution_m / 0.1
+        ax.scatter(centers[:, 0], centers[:, 1], centers[:, 2], c=centers[:, 2], cmap="viridis",
+                   marker="s", s=size, depthshade=True, linewidths=0)  # fmt: skip
+        span = np.ptp(centers, axis=0)
+        ax.set_box_aspect((max(span[0], 1e-3), max(span[1], 1e-3), max(span[2], 1e-3)))
+    ax.view_init(elev=55, azim=-60)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    ax.set_title(f"occupied cells (P > {threshold:g}): {len(cells):,}")
     _save(figure, path)
     return path

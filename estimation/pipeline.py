@@ -1,0 +1,479 @@
+"""``coopmap batch``: a recorded dataset → optimized poses and the global 3D map (DESIGN §1).
+
+Per robot, the raw LMS bytes are decoded with the real parser; every dwell (all robots still)
+yields one full sweep per robot — the mirror's motor rate and phase estimated from the arm and
+edge-on signatures inside that dwell — converted to 3D points, in which the beacons are found.
+The dataset's event log becomes the estimator's event stream: a gauge prior on the first robot's
+start, odometry between each robot's stops, and the mutual observations of every dwell between
+its reference and mapper (gated by s1/s2 in the graph builder). The graph is optimized in batch
+(Levenberg–Marquardt, graduated non-convexity on mutual and global factors), and every sweep is
+re-fused into the global occupancy grid at its optimized pose. Outputs follow DESIGN §12.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from estimation import __version__
+from estimation.config import Config, ConfigError, config_from_mapping
+from estimation.errors import EstimationError
+from estimation.events import Event, Move, Observe, Start
+from estimation.graph import FactorSpec, GraphBuilder, GraphSettings
+from estimation.keys import pose_key, split_key
+from estimation.rig import beacon_parameters, mirror_geometry
+from estimation.smoother import optimize_batch
+from mapping.fusion import Scan as MapScan
+from mapping.fusion import fuse_scans
+from mapping.grid import GridParams, OccupancyGrid
+from sensors.atomic import write_text_atomic
+from sensors.beacon import BeaconDetection, detect_beacons
+from sensors.errors import SensorError
+from sensors.frames import pose2_matrix
+from sensors.lms200.capture import CaptureReader
+from sensors.lms200.protocol import ProtocolError, Scan, StreamParser, Telegram, decode_scan
+from sensors.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
+
+__all__ = ["BatchOutput", "Dataset", "Sweep", "graph_settings", "load_dataset", "run_batch"]
+
+Progress = Callable[[str], None]
+
+
+def graph_settings(config: Config) -> GraphSettings:
+    g = config.graph
+    return GraphSettings(
+        prior_sigma_m=g.prior_sigma_m,
+        prior_sigma_rad=g.prior_sigma_rad,
+        odometry_sigma_m=g.odometry_sigma_m,
+        odometry_sigma_per_m=g.odometry_sigma_per_m,
+        odometry_sigma_rad=g.odometry_sigma_rad,
+        odometry_sigma_rad_per_rad=math.radians(g.odometry_sigma_deg_per_rad),
+        range_sigma_m=g.beacon_range_sigma_m,
+        bearing_sigma_rad=g.beacon_bearing_sigma_rad,
+        beacon_offset_m=config.beacon.offset_m,
+        scanner_x_m=config.robot.scanner_x_m,
+        global_min_sigma_m=g.global_min_sigma_m,
+        global_min_sigma_rad=g.global_min_sigma_rad,
+        gate_sigmas=g.gate_sigmas,
+        dominance_ratio=config.search.dominance_ratio,
+        peak_radius_m=config.search.peak_radius_m,
+        peak_radius_rad=math.radians(config.search.peak_radius_deg),
+    )
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A recorded mission (DESIGN §12), as read from its folder."""
+
+    path: Path
+    config: Config
+    robots: list[str]
+    starts: dict[str, np.ndarray]  # declared start poses (x_m, y_m, yaw_rad): the map frame
+    events: list[dict[str, Any]]
+    mission: dict[str, Any]
+
+    def stop_times(self, robot: str) -> dict[int, float]:
+        """When each pose index of ``robot`` began (index 0 at the start)."""
+        times = {0: 0.0}
+        for e in self.events:
+            if e["event"] == "move" and e["robot"] == robot:
+                times[int(e["to_index"])] = float(e["t_s"])
+        return times
+
+
+def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> Dataset:
+    """Read ``mission.yaml`` and ``events.jsonl``; the effective config is the mission's, with
+    ``overrides`` merged over it."""
+    path = Path(path)
+    mission_file = path / "mission.yaml"
+    events_file = path / "events.jsonl"
+    for needed in (mission_file, events_file):
+        if not needed.is_file():
+            raise ConfigError(f"{path}: not a coopmap dataset ({needed.name} is missing)")
+    try:
+        mission = yaml.safe_load(mission_file.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{mission_file}: malformed YAML: {exc}") from None
+    if not isinstance(mission, dict) or "robots" not in mission:
+        raise ConfigError(f"{mission_file}: not a mission (no robots)")
+    config_doc = mission.get("config") or {}
+    merged = _merge(config_doc, overrides or {})
+    config = config_from_mapping(merged, source=str(mission_file))
+    events = []
+    for number, line in enumerate(events_file.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            event = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{events_file}:{number}: not JSON: {exc.msg}") from None
+        if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
+            raise ConfigError(f"{events_file}:{number}: an event needs 'event' and 't_s'")
+        events.append(event)
+    robots = [str(r["name"]) for r in mission["robots"]]
+    starts = {
+        str(r["name"]): np.array([r["start"][0], r["start"][1], math.radians(r["start"][2])])
+        for r in mission["robots"]
+    }
+    return Dataset(path, config, robots, starts, events, mission)
+
+
+def _merge(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in top.items():
+        both = isinstance(value, dict) and isinstance(out.get(key), dict)
+        out[key] = _merge(out[key], value) if both else value
+    return out
+
+
+@dataclass
+class Sweep:
+    """One robot's 3D scan during one dwell, and the beacons found in it."""
+
+    robot: str
+    index: int
+    dwell: int
+    scan: Scan3D
+    detections: list[BeaconDetection]
+
+
+@dataclass
+class RobotStream:
+    scans: list[Scan]
+    times_s: np.ndarray
+    telegrams: int = 0
+    undecodable: int = 0
+    checksum_failures: int = 0
+    bytes_skipped: int = 0
+    truncated_bytes: int = 0
+
+
+def decode_robot(capture: Path, measuring_mode: int) -> RobotStream:
+    """Every measured-value telegram of a capture, decoded, with its measurement time."""
+    reader = CaptureReader(capture)
+    parser = StreamParser()
+    scans: list[Scan] = []
+    undecodable = 0
+    stamp: float | None = None
+    for stamp, chunk in reader.chunks():
+        for event in parser.feed(chunk, stamp):
+            if isinstance(event, Telegram) and event.code == 0xB0:
+                try:
+                    scans.append(decode_scan(event, measuring_mode))
+                except ProtocolError:
+                    undecodable += 1
+    parser.close(stamp)
+    if not scans:
+        raise SensorError(f"{capture}: no measured values in the capture")
+    scans = [s for s in scans if s.stamp_s is not None]
+    return RobotStream(
+        scans=scans,
+        times_s=scan_times(scans),
+        telegrams=parser.stats.telegrams,
+        undecodable=undecodable,
+        checksum_failures=parser.stats.checksum_failures,
+        bytes_skipped=parser.stats.bytes_skipped,
+        truncated_bytes=reader.truncated_bytes,
+    )
+
+
+def sweep_in(
+    stream: RobotStream, start_s: float, end_s: float, config: Config
+) -> tuple[Scan3D | None, str | None]:
+    """The most complete sweep among the scans measured in [start_s, end_s], or why none."""
+    rows = np.flatnonzero((stream.times_s >= start_s) & (stream.times_s <= end_s))
+    if len(rows) < 50:
+        return None, f"only {len(rows)} scans in the dwell"
+    scans = [stream.scans[k] for k in rows]
+    try:
+        estimate = estimate_mirror(scans, stream.times_s[rows], mirror_geometry(config))
+    except SensorError as exc:
+        return None, str(exc)
+    sweeps = assemble_sweeps(scans, stream.times_s[rows], estimate, min_scans=60)
+    if not sweeps:
+        return None, "no complete sweep"
+    best = max(sweeps, key=lambda s: s.scans)
+    expected = 0.5 * estimate.sweep_period_s / np.median(np.diff(stream.times_s[rows]))
+    if best.scans < 0.75 * expected:
+        return None, f"sweep incomplete ({best.scans} of ~{expected:.0f} scans)"
+    return best, None
+
+
+def _odometry(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    from estimation.trajio import read_tum
+
+    stamps, poses = read_tum(path)
+    return stamps, poses
+
+
+def _pose_at(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
+    yaw = np.unwrap(poses[:, 2])
+    return np.array(
+        [
+            np.interp(t, stamps, poses[:, 0]),
+            np.interp(t, stamps, poses[:, 1]),
+            np.interp(t, stamps, yaw),
+        ]
+    )
+
+
+def _between(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return (c * dx + s * dy, -s * dx + c * dy, math.remainder(b[2] - a[2], 2 * math.pi))
+
+
+def _choose(
+    detections: list[BeaconDetection], predicted: tuple[float, float] | None
+) -> BeaconDetection | None:
+    """The detection that is the other robot's beacon: nearest the prediction, or the only one."""
+    if not detections:
+        return None
+    if predicted is None:
+        return detections[0] if len(detections) == 1 else max(detections, key=lambda d: d.quality)
+    a, alpha = predicted
+    return min(
+        detections,
+        key=lambda d: math.hypot(
+            d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi)
+        ),
+    )
+
+
+def _predict(
+    builder: GraphBuilder, observer: int, observed: int, config: Config
+) -> tuple[float, float] | None:
+    guesses = builder.guesses
+    if observer not in guesses or observed not in guesses:
+        return None
+    T_a = pose2_matrix(*guesses[observer]) @ pose2_matrix(config.robot.scanner_x_m, 0, 0)
+    beacon = pose2_matrix(*guesses[observed]) @ np.array(
+        [config.robot.scanner_x_m + config.beacon.offset_m, 0, 0, 1]
+    )
+    local = np.linalg.inv(T_a) @ beacon
+    return float(math.hypot(local[0], local[1])), float(math.atan2(local[1], local[0]))
+
+
+@dataclass
+class BatchOutput:
+    out_dir: Path
+    poses: dict[str, dict[int, np.ndarray]]
+    stamps: dict[str, dict[int, float]]
+    sweeps: list[Sweep]
+    factors: list[FactorSpec]
+    inliers: np.ndarray
+    grid: OccupancyGrid
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+def build_events(
+    dataset: Dataset,
+    streams: dict[str, RobotStream],
+    progress: Progress | None = None,
+) -> tuple[list[Event], list[Sweep], dict[str, Any], GraphBuilder]:
+    """The estimator's event stream of a dataset, the sweeps, and the counts of what failed.
+
+    A builder consumes the events as they are made, so that each observation can be matched to
+    the beacon predicted by the estimate so far.
+    """
+    config = dataset.config
+    builder = GraphBuilder(graph_settings(config))
+    params = beacon_parameters(config)
+    odometry = {r: _odometry(dataset.path / "robots" / r / "odometry.tum") for r in dataset.robots}
+    gauge = dataset.robots[0]
+    events: list[Event] = []
+    sweeps: list[Sweep] = []
+    counts: dict[str, Any] = {"dwells": 0, "observations": 0, "missing_sweeps": [], "unseen": []}
+
+    def emit(event: Event) -> None:
+        builder.add(event)
+        events.append(event)
+
+    emit(Start(gauge, 0, tuple(float(v) for v in dataset.starts[gauge])))  # type: ignore[arg-type]
+    for number, entry in enumerate(dataset.events):
+        kind = entry["event"]
+        if kind == "move":
+            robot = entry["robot"]
+            stamps, poses = odometry[robot]
+            before = _pose_at(stamps, poses, float(entry["start_s"]))
+            after = _pose_at(stamps, poses, float(entry["t_s"]))
+            if pose_key(robot, int(entry["from_index"])) in builder.guesses:
+                emit(Move(robot, int(entry["to_index"]), _between(before, after)))
+            else:
+                counts.setdefault("moves_before_first_fix", 0)
+                counts["moves_before_first_fix"] += 1
+                pending = counts.setdefault("pending_moves", {})
+                pending.setdefault(robot, []).append(
+                    (int(entry["to_index"]), _between(before, after))
+                )
+        elif kind == "dwell":
+            counts["dwells"] += 1
+            start, end = float(entry["t_s"]), float(entry["end_s"])
+            in_dwell: dict[str, Sweep] = {}
+            for robot in dataset.robots:
+                scan, why = sweep_in(streams[robot], start + 0.2, end, config)
+                index = int(entry["poses"][robot])
+                if scan is None:
+                    counts["missing_sweeps"].append(f"{robot}{index} (dwell {number}): {why}")
+                    continue
+                detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **params)
+                sweep = Sweep(robot, index, number, scan, detections)
+                sweeps.append(sweep)
+                in_dwell[robot] = sweep
+            reference, mapper = entry.get("reference"), entry.get("mapper")
+            if reference in in_dwell and mapper in in_dwell:
+                ka = pose_key(reference, in_dwell[reference].index)
+                kc = pose_key(mapper, in_dwell[mapper].index)
+                seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
+                seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
+                if seen_a is None or seen_c is None:
+                    counts["unseen"].append(
+                        f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
+                    )
+                elif ka in builder.guesses or kc in builder.guesses:
+                    emit(Observe((reference, in_dwell[reference].index), (mapper, in_dwell[mapper].index),
+                                 seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad))  # fmt: skip
+                    counts["observations"] += 1
+                    _flush_pending(counts, builder, emit)
+        if progress is not None:
+            progress(f"event {number + 1}/{len(dataset.events)}")
+    return events, sweeps, counts, builder
+
+
+def _flush_pending(
+    counts: dict[str, Any], builder: GraphBuilder, emit: Callable[[Event], None]
+) -> None:
+    """Odometry of a robot that moved before its first fix joins once it is anchored."""
+    pending: dict[str, list[tuple[int, tuple[float, float, float]]]] = counts.get(
+        "pending_moves", {}
+    )
+    for robot, moves in list(pending.items()):
+        while moves and pose_key(robot, moves[0][0] - 1) in builder.guesses:
+            index, delta = moves.pop(0)
+            if pose_key(robot, index) not in builder.guesses:
+                emit(Move(robot, index, delta))
+        if not moves:
+            del pending[robot]
+
+
+def _connected(factors: list[FactorSpec], root: int) -> set[int]:
+    parent: dict[int, int] = {}
+
+    def find(k: int) -> int:
+        parent.setdefault(k, k)
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for f in factors:
+        for k in f.keys:
+            find(k)
+        for k in f.keys[1:]:
+            parent[find(k)] = find(f.keys[0])
+    return {k for k in parent if find(k) == find(root)}
+
+
+def scanner_matrix(pose: np.ndarray, config: Config) -> np.ndarray:
+    return pose2_matrix(*pose) @ pose2_matrix(
+        config.robot.scanner_x_m, 0.0, 0.0, config.robot.scanner_height_m
+    )
+
+
+def run_batch(
+    dataset_dir: Path | str,
+    out_dir: Path | str | None = None,
+    *,
+    overrides: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> BatchOutput:
+    """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results."""
+    from estimation.results import write_results
+
+    timings: dict[str, float] = {}
+    clock = time.perf_counter()
+    dataset = load_dataset(dataset_dir, overrides)
+    config = dataset.config
+    out = Path(out_dir) if out_dir is not None else dataset.path / "result"
+    streams: dict[str, RobotStream] = {}
+    for robot in dataset.robots:
+        if progress is not None:
+            progress(f"decoding robot {robot}")
+        capture = dataset.path / "robots" / robot / "lms.cap"
+        streams[robot] = decode_robot(capture, config.scanner.measuring_mode)
+    timings["decode"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    _, sweeps, counts, builder = build_events(dataset, streams, progress)
+    timings["sweeps_and_beacons"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    gauge = pose_key(dataset.robots[0], 0)
+    keep = _connected(builder.factors, gauge)
+    factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
+    initial = {k: v for k, v in builder.initial_values().items() if k in keep}
+    dropped = sorted(set(builder.initial_values()) - keep)
+    if len(initial) < 1:
+        raise EstimationError(f"{dataset.path}: no pose is connected to the gauge")
+    result = optimize_batch(factors, initial, robust=config.graph.robust)
+    timings["optimize"] = time.perf_counter() - clock
+
+    clock = time.perf_counter()
+    poses: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
+    for key, pose in result.estimate.items():
+        robot, index = split_key(key)
+        poses[robot][index] = pose
+    used = [s for s in sweeps if s.index in poses[s.robot]]
+    grid = fuse_scans(
+        [MapScan(s.scan.points_scanner) for s in used],
+        np.stack([scanner_matrix(poses[s.robot][s.index], config) for s in used])
+        if used
+        else np.zeros((0, 4, 4)),
+        GridParams(**config.grid.model_dump()),
+    )
+    timings["fusion"] = time.perf_counter() - clock
+
+    stamps = {r: dataset.stop_times(r) for r in dataset.robots}
+    report = {
+        "coopmap": __version__,
+        "dataset": str(dataset.path),
+        "robots": {
+            r: {
+                "telegrams": streams[r].telegrams,
+                "undecodable": streams[r].undecodable,
+                "checksum_failures": streams[r].checksum_failures,
+                "bytes_skipped": streams[r].bytes_skipped,
+                "truncated_bytes": streams[r].truncated_bytes,
+                "poses": len(poses[r]),
+            }
+            for r in dataset.robots
+        },
+        "dwells": counts["dwells"],
+        "sweeps": len(sweeps),
+        "missing_sweeps": counts["missing_sweeps"],
+        "observations": counts["observations"],
+        "unseen_pairs": counts["unseen"],
+        "gate_rejections": [r.reason for r in builder.rejections] if builder.rejections else [],
+        "factors": len(factors),
+        "outlier_factors": [factors[i].describe() for i in result.outliers],
+        "dropped_poses": [f"{split_key(k)[0]}{split_key(k)[1]}" for k in dropped],
+        "graph_error": result.error,
+        "timings_s": timings,
+    }
+    output = BatchOutput(out, poses, stamps, sweeps, factors, result.inliers, grid, report)
+    clock = time.perf_counter()
+    write_results(output, config)
+    timings["write"] = time.perf_counter() - clock
+    timings["total"] = sum(v for k, v in timings.items() if k != "total")
+    write_text_atomic(
+        out / "report.json", json.dumps(output.report, indent=1, default=float) + "\n"
+    )
+    return output
