@@ -258,7 +258,6 @@ def _apply_fresh(
     logodds: np.ndarray,
     known: np.ndarray,
     block_scan: np.ndarray,
-    pending: np.ndarray,
     updates: np.ndarray,
     lut: np.ndarray,
     bs: int,
@@ -274,7 +273,6 @@ def _apply_fresh(
     """
     blk = -1
     stop = n_fresh
-    q = pending.shape[1] - 1
     if lg >= 0:
         # Power-of-two blocks and a block-aligned cube: a cell's Morton code is its block's
         # Morton code (relative to the cube corner's block) followed by its in-block offset.
@@ -311,12 +309,9 @@ def _apply_fresh(
                     stop = k
                     break
                 last_hi = hi
-            n = pending[0, 0] + 1
-            pending[0, n] = blk
-            pending[1, n] = m & low
-            pending[0, 0] = n
-            if n == q:
-                _flush(logodds, known, pending, updates, delta, l_min, l_max)
+            flat = m & low
+            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
     else:
         last = EMPTY_KEY
         for k in range(n_fresh):
@@ -346,16 +341,13 @@ def _apply_fresh(
                     stop = k
                     break
                 last = key
-            n = pending[0, 0] + 1
-            pending[0, n] = blk
-            pending[1, n] = lut[0, lx] + lut[1, ly] + lut[2, lz]
-            pending[0, 0] = n
-            if n == q:
-                _flush(logodds, known, pending, updates, delta, l_min, l_max)
+            flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
+            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+    updates[0] += stop
     for k in range(stop, n_fresh):
         m = fresh[k]
         cube[m >> 3] &= np.uint8(~(1 << (m & 7)) & 0xFF)
-    _flush(logodds, known, pending, updates, delta, l_min, l_max)
     return stop
 
 
@@ -534,7 +526,6 @@ def _trace_rays(
                 logodds,
                 known,
                 block_scan,
-                pending,
                 updates,
                 lut,
                 bs,
@@ -646,7 +637,6 @@ def _trace_rays(
         logodds,
         known,
         block_scan,
-        pending,
         updates,
         lut,
         bs,
@@ -658,6 +648,17 @@ def _trace_rays(
     if done < n_fresh:
         return batch_start
     return len(ends)
+
+
+@njit(cache=True)
+def first_bad_point(points: np.ndarray, origin: np.ndarray, reach_m: float) -> int:
+    """Index of the first (N, 3) point that is not finite or lies ``reach_m`` or more from
+    ``origin`` along an axis; −1 if none."""
+    for n in range(len(points)):
+        for axis in range(3):
+            if not abs(points[n, axis] - origin[axis]) < reach_m:
+                return n
+    return -1
 
 
 @njit(cache=True)

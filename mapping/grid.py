@@ -25,7 +25,7 @@ from mapping.logodds import logodds, probability
 __all__ = ["GridParams", "OccupancyGrid"]
 
 #: Cell coordinates beyond this many cells from the origin cannot be addressed (block keys).
-_INITIAL_BLOCKS = 128
+_INITIAL_BLOCKS = 256
 
 
 def _finite_positive(name: str, value: float) -> None:
@@ -582,17 +582,15 @@ class OccupancyGrid:
         points = np.ascontiguousarray(points, dtype=np.float64)
         if points.ndim != 2 or points.shape[1] != 3:
             raise MapError(f"{name} must be (N, 3), got {points.shape}")
-        finite = np.isfinite(points).all(axis=1)
-        if not finite.all():
-            bad = int(np.flatnonzero(~finite)[0])
-            raise MapError(f"{name}[{bad}] is not finite: {points[bad].tolist()}")
-        if len(points):
-            reach = np.abs(points - self.origin_m).max() / self.resolution_m
-            if reach >= self._max_cells:
-                raise MapError(
-                    f"{name} reach {reach * self.resolution_m:.4g} m from the grid origin, "
-                    f"beyond the {self._max_cells * self.resolution_m:.4g} m it can address"
-                )
+        reach_m = self._max_cells * self.resolution_m
+        bad = kernels.first_bad_point(points, self.origin_m, reach_m)
+        if bad >= 0:
+            if not np.all(np.isfinite(points[bad])):
+                raise MapError(f"{name}[{bad}] is not finite: {points[bad].tolist()}")
+            raise MapError(
+                f"{name}[{bad}] {points[bad].tolist()} lies beyond the {reach_m:.4g} m from the "
+                "grid origin that the grid can address"
+            )
         return points
 
     def _cells(self, cells: np.ndarray) -> np.ndarray:
