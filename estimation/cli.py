@@ -55,10 +55,10 @@ ConfigOption = Annotated[
 
 
 def _known_errors() -> tuple[type[BaseException], ...]:
-    from mapping.ply import PlyError
+    from mapping.errors import MapError
     from sensors.errors import SensorError
 
-    return (ConfigError, SensorError, PlyError, OSError)
+    return (ConfigError, SensorError, MapError, OSError)
 
 
 def _describe(exc: BaseException) -> str:
@@ -101,24 +101,57 @@ def _file_size(path: Path) -> str:
 def demo(
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("runs/demo"),
     config: ConfigOption = None,
-    seed: Annotated[int, typer.Option(help="Seed of the simulated noise.")] = 0,
+    seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
 ) -> None:
-    """Simulate a 360° 3D view in the default world and write the figures and point cloud."""
-    from estimation.demo import DEFAULT_POSE, DEFAULT_WORLD, run_demo
+    """Simulate the default mission (essex_lab, two robots), optimize, fuse, evaluate, render."""
+    import time
 
+    from estimation.demo import DEFAULT_POSE, DEFAULT_WORLD, run_demo
+    from estimation.evaluate import evaluate as run_evaluate
+    from estimation.pipeline import run_batch
+    from estimation.resources import resolve_builtin
+    from estimation.simulate import run_simulation
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
     cfg = _config(config)
+    started = time.perf_counter()
     err = _console(stderr=True)
-    with err.status(f"simulating a 360° view in {DEFAULT_WORLD}…", spinner="dots"):
-        result = run_demo(out, cfg, world=DEFAULT_WORLD, pose=DEFAULT_POSE, seed=seed)
+    with err.status("simulating the essex_lab mission…", spinner="dots") as status:
+        sim = run_simulation(
+            resolve_builtin("missions", "essex_lab"), out, overrides=overrides, seed=seed,
+            progress=lambda robot, f: status.update(f"simulating: sensors of robot {robot} ({f:.0%})"),
+        )  # fmt: skip
+        status.update("decoding, mutual localization, pose graph, fusion…")
+        output = run_batch(out, overrides=overrides, progress=status.update)
+        status.update("evaluating against the ground truth…")
+        metrics = run_evaluate(out)
+        status.update("rendering the world and a 360° view…")
+        view = run_demo(out / "result" / "view", cfg, world=DEFAULT_WORLD, pose=DEFAULT_POSE)
     console = _console()
-    x, y, yaw = result.pose
     console.print(
-        f"coopmap demo: world [bold]{result.world}[/], robot at x={x:g} m, y={y:g} m, "
-        f"yaw={yaw:g}°: {result.rays:,} rays, {result.points:,} returns on "
-        f"{result.surfaces_hit} surfaces"
+        f"coopmap demo: {sim.world}, {len(sim.poses)} robots, {sim.steps} leapfrog steps, "
+        f"{sim.duration_s:.0f} s of mission simulated, processed and evaluated in "
+        f"{time.perf_counter() - started:.1f} s"
     )
-    for label, path in result.outputs:
-        console.print(f"  wrote {path}  ({label}, {_file_size(path)})")
+    for robot, m in metrics["robots"].items():
+        if m.get("poses"):
+            console.print(
+                f"  robot {robot}: {m['poses']} poses, ATE {m['ate_m'] * 100:.1f} cm / "
+                f"{m['ate_deg']:.2f}°"
+            )
+    quality = metrics["map"]
+    console.print(
+        f"  mutual observations: {output.report['observations']}; map: "
+        f"{output.report.get('occupied_voxels', 0):,} occupied voxels, precision "
+        f"{quality['precision']:.3f}, recall {quality['recall']:.3f} at {quality['resolution_m']:g} m"
+    )
+    result = out / "result"
+    console.print(f"  dataset: {out}/  result: {result}/  report: {result / 'report.md'}")
+    figures = sorted((result / "figures").glob("*.png")) + [
+        p for _, p in view.outputs if p.suffix == ".png"
+    ]
+    console.print("  figures: " + ", ".join(str(p) for p in figures))
 
 
 @app.command()
@@ -154,6 +187,72 @@ def simulate(
         + (f"; {len(result.changed)} objects moved afterwards" if result.changed else "")
     )
     console.print(f"  wrote {result.out_dir}/")
+
+
+@app.command()
+@cli_errors
+def batch(
+    dataset: Annotated[Path, typer.Argument(help="A dataset folder (coopmap simulate).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
+    from estimation.pipeline import run_batch
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    err = _console(stderr=True)
+    with err.status(f"processing {dataset}…", spinner="dots") as status:
+        output = run_batch(dataset, out, overrides=overrides, progress=status.update)
+    r = output.report
+    poses = ", ".join(f"{name} {s['poses']}" for name, s in r["robots"].items())
+    _console().print(
+        f"coopmap batch: {r['sweeps']} sweeps, {r['observations']} mutual observations "
+        f"({len(r['gate_rejections'])} gated out, {len(r['outlier_factors'])} outliers), "
+        f"poses: {poses}; {r.get('occupied_voxels', 0):,} occupied voxels; "
+        f"{r['timings_s']['total']:.1f} s"
+    )
+    _console().print(f"  wrote {output.out_dir}/")
+
+
+@app.command()
+@cli_errors
+def evaluate(
+    dataset: Annotated[
+        Path, typer.Argument(help="A simulated dataset folder (with ground truth).")
+    ],
+    result: Annotated[
+        Path | None, typer.Option(help="Result folder (default DATASET/result).")
+    ] = None,
+    json_out: JsonOption = False,
+) -> None:
+    """Accuracy against the dataset's ground truth; writes metrics.json beside the result."""
+    import json
+
+    from estimation.evaluate import evaluate as run_evaluate
+
+    metrics = run_evaluate(dataset, result)
+    if json_out:
+        typer.echo(json.dumps(metrics))
+        return
+    console = _console()
+    for robot, m in metrics["robots"].items():
+        if m.get("poses"):
+            console.print(
+                f"robot {robot}: {m['poses']} poses, ATE {m['ate_m'] * 100:.1f} cm / "
+                f"{m['ate_deg']:.2f}°"
+                + (f", RPE {m['rpe_m'] * 100:.1f} cm / {m['rpe_deg']:.2f}°" if "rpe_m" in m else "")
+            )
+    mutual, quality = metrics["mutual"], metrics["map"]
+    if mutual["median_m"] is not None:
+        console.print(
+            f"mutual: {mutual['events']} events, {mutual['rejected']} gated out, median error "
+            f"{mutual['median_m'] * 100:.1f} cm / {mutual['median_deg']:.2f}°"
+        )
+    console.print(
+        f"map at {quality['resolution_m']:g} m: precision {quality['precision']:.3f}, "
+        f"recall {quality['recall']:.3f} ({quality['occupied']:,} occupied cells)"
+    )
 
 
 @world_app.command("show")
@@ -357,6 +456,38 @@ def lms_record(
     driver.close()
     path = writer.close()
     typer.echo(f"wrote {path} ({writer.bytes_written:,} bytes, {count} scans)")
+
+
+@bench_app.command("fusion")
+@cli_errors
+def bench_fusion(
+    json_out: JsonOption = False,
+    config: ConfigOption = None,
+    repeats: Annotated[
+        int, typer.Option(min=1, help="Insertions per tool and scan; the best is kept.")
+    ] = 7,
+    refusion_scans: Annotated[
+        int, typer.Option(min=0, help="Simulated scans re-fused into one map (0: skip).")
+    ] = 200,
+    data: Annotated[
+        Path | None, typer.Option(help="The shared data folder (default: ../shared/data).")
+    ] = None,
+) -> None:
+    """Bayesian 3D fusion of one scan by coopmap and by OctoMap, in one process."""
+    import json
+
+    from estimation.bench_fusion import (
+        default_data_dir,
+        format_fusion_report,
+        run_fusion_benchmark,
+    )
+
+    cfg = _config(config)
+    with _console(stderr=True).status("fusing scans with coopmap and OctoMap…", spinner="dots"):
+        result = run_fusion_benchmark(
+            cfg, data or default_data_dir(), repeats=repeats, refusion_scans=refusion_scans
+        )
+    typer.echo(json.dumps(result) if json_out else format_fusion_report(result))
 
 
 @bench_app.command("scan")

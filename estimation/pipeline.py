@@ -339,8 +339,14 @@ def build_events(
                         f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
                     )
                 elif ka in builder.guesses or kc in builder.guesses:
-                    emit(Observe((reference, in_dwell[reference].index), (mapper, in_dwell[mapper].index),
-                                 seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad))  # fmt: skip
+                    observer = (reference, in_dwell[reference].index)
+                    observed = (mapper, in_dwell[mapper].index)
+                    emit(
+                        Observe(
+                            observer, observed,
+                            seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad,
+                        )
+                    )  # fmt: skip
                     counts["observations"] += 1
                     _flush_pending(counts, builder, emit)
         if progress is not None:

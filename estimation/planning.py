@@ -226,7 +226,7 @@ def plan_leapfrog(
         at: list[float] | None = None
         if k > 0:
             heading = (
-                route.heading(ref)
+                route.heading(ref, poses[mapper], geometry)
                 if route.active
                 else _best_heading(ref, poses[mapper], space, coverage, geometry, band)
             )
@@ -337,20 +337,28 @@ class _Route:
         while self.active and self.distance(pose) < reached_m:
             self.next += 1
 
-    def heading(self, pose: np.ndarray) -> float:
-        """Towards the next waypoint along the shortest path."""
+    def heading(self, pose: np.ndarray, mapper: np.ndarray, geometry: _Geometry) -> float:
+        """Towards the next waypoint along the shortest path — turned, within 45°, so that the
+        mapper's beacon stays in view if that is possible."""
         legs = self.space.path(pose[:2], self.waypoints[self.next])
         target = legs[1] if legs is not None and len(legs) > 1 else self.waypoints[self.next]
-        return math.atan2(target[1] - pose[1], target[0] - pose[0])
+        ahead = math.atan2(target[1] - pose[1], target[0] - pose[0])
+        for offset in np.radians([0, 10, -10, 20, -20, 30, -30, 40, -40]):
+            candidate = np.array([pose[0], pose[1], ahead + offset])
+            if geometry.mutual(candidate, mapper, (0.5, 8.0)):
+                return float(ahead + offset)
+        return ahead
 
 
 def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverage: CoverageModel,
                   geometry: _Geometry, band: tuple[float, float]) -> float:  # fmt: skip
-    """The heading at which the reference's front sectors hold the most uncovered space."""
+    """The heading at which the reference's front sectors hold the most uncovered space;
+    headings that keep the other robot's beacon in view (a mutual observation at the station)
+    come first."""
     best, best_gain = ref[2], -1
-    for heading in np.radians(np.arange(0, 360, 30)):
+    for heading in np.radians(np.arange(0, 360, 15)):
         pose = np.array([ref[0], ref[1], heading])
-        gain = 0
+        gain = 0 if geometry.mutual(pose, mapper, (0.5, 8.0)) else -1_000_000
         for candidate in _mapper_candidates(pose, geometry, band)[::3]:
             if space.is_free(candidate[:2]):
                 gain = max(gain, coverage.gain(candidate))
