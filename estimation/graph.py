@@ -64,6 +64,7 @@ __all__ = [
 
 FactorKind = Literal["prior", "odometry", "mutual", "global"]
 RobustKernel = Literal["none", "huber", "cauchy"]
+_KERNEL_WIDTH = math.sqrt(float(chi2.ppf(0.95, 3)))
 
 
 @dataclass(frozen=True)
@@ -129,14 +130,13 @@ class FactorSpec:
         return f"{self.kind} {'-'.join(key_label(k) for k in self.keys)} (event {self.event})"
 
     def residual(self, poses: Mapping[int, np.ndarray]) -> np.ndarray:
-        """Residual (3,) at ``poses`` in GTSAM's Pose2 chart: the (x, y, yaw) of
-        ``measurement⁻¹ ∘ predicted``."""
+        """Residual (3,) at ``poses`` in GTSAM's Pose2 chart: ``Log(measurement⁻¹ ∘ predicted)``."""
         predicted = (
             poses[self.keys[0]]
             if len(self.keys) == 1
             else se2.between(poses[self.keys[0]], poses[self.keys[1]])
         )
-        return se2.between(self.measurement, predicted)
+        return se2.log(se2.between(self.measurement, predicted))
 
     def mahalanobis2(self, poses: Mapping[int, np.ndarray]) -> float:
         """Squared Mahalanobis norm of the residual (twice GTSAM's ``factor.error``)."""
@@ -234,6 +234,8 @@ class GraphBuilder:
         self.rejections: list[Rejection] = []
         self.pdfs: dict[int, list[tuple[PosePdf, int | None]]] = {}
         self._sources: dict[int, str] = {}
+        self._anchors: dict[str, int] = {}
+        self._seed_chi2 = float(chi2.ppf(0.999, 3))
         self._latest: dict[str, int] = {}
         self._steps: dict[str, dict[int, _Step]] = {}
         self._fixes: dict[tuple[str, str], tuple[int, int, np.ndarray, np.ndarray]] = {}
@@ -285,7 +287,30 @@ class GraphBuilder:
         self._sources[key] = source
         robot, index = split_key(key)
         self._latest[robot] = max(self._latest.get(robot, index), index)
+        if source != "move":
+            self._anchors[robot] = index
         return {key: self.guesses[key].copy()}
+
+    def _refine_guess(
+        self, key: int, guess: np.ndarray, covariance: np.ndarray, source: str
+    ) -> None:
+        """Replace an odometry-only guess by one from an observation or a search, if the two
+        agree within the dead-reckoning uncertainty since the robot's last anchored pose (χ² at
+        0.999). A gross outlier, even one let into the graph, must not drag the initial values
+        of every pose after it."""
+        if self._sources[key] != "move":
+            return
+        robot, index = split_key(key)
+        anchor = self._anchors.get(robot)
+        motion = None if anchor is None else self._motion(robot, anchor, index)
+        if motion is None:
+            return
+        xi = se2.log(se2.between(self.guesses[key], guess))
+        if float(xi @ np.linalg.solve(motion[1] + covariance, xi)) > self._seed_chi2:
+            return
+        self.guesses[key] = np.asarray(guess, dtype=float).copy()
+        self._sources[key] = source
+        self._anchors[robot] = index
 
     def _start(self, event: Start, number: int) -> Increment:
         key = pose_key(event.robot, event.index)
@@ -368,12 +393,11 @@ class GraphBuilder:
             values = self._new_pose(kc, se2.compose(self.guesses[ka], T), "observe")
         elif ka not in self.guesses:
             values = self._new_pose(ka, se2.compose(self.guesses[kc], se2.inverse(T)), "observe")
-        elif self._sources[kc] == "move":
-            self.guesses[kc] = se2.compose(self.guesses[ka], T)
-            self._sources[kc] = "observe"
-        elif self._sources[ka] == "move":
-            self.guesses[ka] = se2.compose(self.guesses[kc], se2.inverse(T))
-            self._sources[ka] = "observe"
+        elif self._sources[kc] == "move" and self._sources[ka] != "move":
+            self._refine_guess(kc, se2.compose(self.guesses[ka], T), cov, "observe")
+        elif self._sources[ka] == "move" and self._sources[kc] != "move":
+            T_inv, cov_inv = _inverse_with_covariance(T, cov)
+            self._refine_guess(ka, se2.compose(self.guesses[kc], T_inv), cov_inv, "observe")
         self._remember_fix(ra, ia, rc, ic, T, cov)
         return Increment(number, (FactorSpec("mutual", (ka, kc), T, cov, number),), values)
 
@@ -413,9 +437,8 @@ class GraphBuilder:
                     f"{s.dominance_ratio:g}): nothing to seed it with",
                 )
             values = self._new_pose(key, se2.compose(base, seeded), "localize")
-        elif seeded is not None and from_search and self._sources[key] == "move":
-            self.guesses[key] = se2.compose(base, seeded)
-            self._sources[key] = "localize"
+        elif seeded is not None and from_search:
+            self._refine_guess(key, se2.compose(base, seeded), cov, "localize")
         self.pdfs.setdefault(key, []).append((pdf, reference))
         keys = (key,) if reference is None else (reference, key)
         return Increment(number, (FactorSpec("global", keys, mean, cov, number),), values)
@@ -537,10 +560,12 @@ def to_gtsam_factor(spec: FactorSpec, kernel: RobustKernel = "none") -> gtsam.No
 
     noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(spec.covariance)
     if spec.robust and kernel != "none":
+        # The kernels act on the norm of the whitened 3-vector: leave its 95 % quantile alone.
+        k = _KERNEL_WIDTH
         estimator = (
-            gtsam.noiseModel.mEstimator.Huber.Create(1.345)
+            gtsam.noiseModel.mEstimator.Huber.Create(k)
             if kernel == "huber"
-            else gtsam.noiseModel.mEstimator.Cauchy.Create(1.0)
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
         )
         noise = gtsam.noiseModel.Robust.Create(estimator, noise)
     pose = gtsam.Pose2(*(float(v) for v in spec.measurement))

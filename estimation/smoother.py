@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import time
+import zipfile
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -324,7 +325,7 @@ class IncrementalSmoother:
                 poses = np.asarray(data["poses"], dtype=float)
                 n_factors = int(data["factors"])
                 fingerprint = str(data["fingerprint"])
-        except (OSError, ValueError, KeyError, EOFError) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
             raise EstimationError(f"{path}: not a readable checkpoint ({exc})") from exc
         if version != _CHECKPOINT_VERSION:
             raise EstimationError(f"{path}: checkpoint version {version} is not supported")

@@ -1,10 +1,11 @@
 """Synthetic two-robot leapfrog missions: event streams with ground truth, for tests and benches.
 
-Robot ``a`` is the reference: it stands at a station while robot ``b`` takes scans at several
-poses around it, each with a mutual observation; then ``a`` moves on to the next station, watched
-by ``b`` (paper Fig. 2). Stations follow a rounded 30 m × 20 m loop, lap after lap, so later laps
-revisit earlier stations. Each station is globally localized: against a fixed prior map every
-``map_prior_every`` stations, and against the nearest station of an earlier lap (a loop closure).
+Robot ``a`` is the reference: it stands at a station while robot ``b`` takes scans around it
+(walking round it, 1-3 m between scans), each with a mutual observation; then ``a`` moves on to
+the next station, watched by ``b`` (paper Fig. 2). Stations follow a 30 m × 20 m rectangular
+loop, lap after lap, so later laps revisit earlier stations. Stations are globally localized:
+against a fixed prior map every ``map_prior_every`` stations, and against the nearest station of
+an earlier lap (a loop closure).
 
 Measurements are drawn from exactly the noise models the graph assumes (calibrated sigmas):
 odometry per :func:`~estimation.graph.odometry_covariance`, range/bearing of each beacon, and
@@ -189,15 +190,18 @@ def leapfrog(
             ]
         )
 
-    def scan_pose(T_a: np.ndarray) -> np.ndarray:
+    def scan_pose(T_a: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+        """b walks around a: the next scan 25-60° further round a ring of 1.5-3.5 m, facing
+        along the ring give or take 60° (both beacons visible)."""
+        start = rng.uniform(-math.pi, math.pi)
+        if previous is not None:
+            start = math.atan2(previous[1] - T_a[1], previous[0] - T_a[0])
         while True:
-            r, phi = rng.uniform(1.0, 4.0), rng.uniform(-math.pi, math.pi)
+            r = rng.uniform(1.5, 3.5)
+            phi = start + rng.uniform(math.radians(25), math.radians(60))
+            heading = phi + math.pi / 2 + rng.uniform(-math.radians(60), math.radians(60))
             T_b = np.array(
-                [
-                    T_a[0] + r * math.cos(phi),
-                    T_a[1] + r * math.sin(phi),
-                    rng.uniform(-math.pi, math.pi),
-                ]
+                [T_a[0] + r * math.cos(phi), T_a[1] + r * math.sin(phi), se2.wrap_angle(heading)]
             )
             if visible(T_a, T_b, s):
                 return T_b
@@ -213,7 +217,7 @@ def leapfrog(
             events.append(Move("a", ia, _triple(_odometry(rng, true_delta, s))))
             observe(ia, ib)  # b watches a arrive
         for _ in range(scans_per_station):
-            T_b = scan_pose(T_a)
+            T_b = scan_pose(T_a, truth[pose_key("b", ib)] if ib >= 0 else None)
             ib += 1
             truth[pose_key("b", ib)] = T_b
             if ib == 0:

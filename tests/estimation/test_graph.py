@@ -1,0 +1,335 @@
+"""The graph builder: keys, factors from events, covariance conventions, the gate in front."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimation import se2
+from estimation.errors import EstimationError
+from estimation.events import Localize, Move, Observe, Start
+from estimation.graph import (
+    FactorSpec,
+    GraphBuilder,
+    GraphSettings,
+    check_constrained,
+    mutual_between,
+    odometry_covariance,
+    to_gtsam_factor,
+    to_gtsam_values,
+)
+from estimation.keys import key_label, pose_key, split_key
+from estimation.mutual import localize_mutual
+from estimation.synthetic import leapfrog, mutual_measurements, search_pdf, visible
+
+S = GraphSettings()
+
+
+def test_keys_come_from_gtsam_symbols() -> None:
+    key = pose_key("b", 17)
+    assert key == gtsam.symbol("b", 17)
+    assert split_key(key) == ("b", 17)
+    assert key_label(key) == "b17"
+    for bad, pattern in [("ab", "one lowercase letter"), ("B", "one lowercase letter")]:
+        with pytest.raises(EstimationError, match=pattern):
+            pose_key(bad, 0)
+    with pytest.raises(EstimationError, match="pose index must be an integer"):
+        pose_key("a", -1)
+
+
+def test_se2_helpers_agree_with_gtsam() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        p, q = rng.normal(size=3), rng.normal(size=3)
+        gp, gq = gtsam.Pose2(*p), gtsam.Pose2(*q)
+        c = gp.compose(gq)
+        np.testing.assert_allclose(se2.compose(p, q), [c.x(), c.y(), c.theta()], atol=1e-12)
+        b = gp.between(gq)
+        np.testing.assert_allclose(se2.between(p, q), [b.x(), b.y(), b.theta()], atol=1e-12)
+        np.testing.assert_allclose(se2.adjoint(p), gp.AdjointMap(), atol=1e-12)
+        log = gtsam.Pose2.Logmap(gp)
+        np.testing.assert_allclose(se2.log(p), log, atol=1e-10)
+        e = gtsam.Pose2.Expmap(log)
+        np.testing.assert_allclose(se2.exp(log), [e.x(), e.y(), e.theta()], atol=1e-10)
+
+
+def test_mutual_between_covariance_matches_monte_carlo_in_gtsam_chart() -> None:
+    """The factor's covariance is what GTSAM's BetweenFactorPose2 expects: the spread of
+    ``measured⁻¹ ∘ sample`` of relative robot poses built from noisy raw measurements."""
+    rng = np.random.default_rng(1)
+    T_a, T_c = np.array([1.0, 2.0, 0.3]), np.array([3.5, 0.5, 2.2])
+    z0 = mutual_measurements(T_a, T_c, S)
+    noise = np.array([S.range_sigma_m, S.bearing_sigma_rad] * 2)
+    fix = localize_mutual(*z0, S.beacon_offset_m, S.range_sigma_m, S.bearing_sigma_rad)
+    T_true, cov = mutual_between(fix.pose, fix.covariance, S.scanner_x_m)
+    np.testing.assert_allclose(T_true, se2.between(T_a, T_c), atol=1e-9)
+    samples = []
+    for _ in range(4000):
+        z = z0 + rng.normal(size=4) * noise
+        f = localize_mutual(*z, S.beacon_offset_m, S.range_sigma_m, S.bearing_sigma_rad)
+        T, _ = mutual_between(f.pose, f.covariance, S.scanner_x_m)
+        samples.append(se2.between(T_true, T))
+    empirical = np.cov(np.array(samples).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(empirical)), np.sqrt(np.diag(cov)), rtol=0.06)
+
+
+def test_factor_residual_matches_gtsam_error() -> None:
+    cov = np.diag([0.01, 0.02, 0.003])
+    spec = FactorSpec(
+        "mutual", (pose_key("a", 0), pose_key("b", 0)), np.array([1.0, 0.2, 0.1]), cov, 0
+    )
+    poses = {
+        pose_key("a", 0): np.array([0.3, 0.1, 0.2]),
+        pose_key("b", 0): np.array([1.4, 0.3, 0.25]),
+    }
+    factor = to_gtsam_factor(spec)
+    assert factor.error(to_gtsam_values(poses)) == pytest.approx(0.5 * spec.mahalanobis2(poses))
+    prior = FactorSpec("prior", (pose_key("a", 0),), np.array([0.2, 0.0, 0.1]), cov, 0)
+    assert to_gtsam_factor(prior).error(to_gtsam_values(poses)) == pytest.approx(
+        0.5 * prior.mahalanobis2(poses)
+    )
+    robust = to_gtsam_factor(spec, "cauchy")
+    assert robust.error(to_gtsam_values(poses)) < factor.error(to_gtsam_values(poses))
+
+
+def test_odometry_sigmas_grow_with_distance_and_turn() -> None:
+    cov = odometry_covariance(np.array([3.0, 4.0, -1.0]), 0.01, 0.05, math.radians(0.5),
+                              math.radians(2.0))  # fmt: skip
+    assert math.sqrt(cov[0, 0]) == pytest.approx(0.01 + 0.05 * 5.0)
+    assert math.sqrt(cov[2, 2]) == pytest.approx(math.radians(0.5) + math.radians(2.0))
+
+
+def two_robots() -> tuple[GraphBuilder, np.ndarray, np.ndarray]:
+    builder = GraphBuilder(S)
+    T_a, T_b = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.5, -2.0])
+    builder.add(Start("a", 0, (0.0, 0.0, 0.0)))
+    builder.add(Observe(("a", 0), ("b", 0), *mutual_measurements(T_a, T_b, S)))
+    return builder, T_a, T_b
+
+
+def test_events_become_factors_and_initial_values() -> None:
+    builder, _, T_b = two_robots()
+    assert [f.kind for f in builder.factors] == ["prior", "mutual"]
+    np.testing.assert_allclose(builder.guesses[pose_key("b", 0)], T_b, atol=1e-9)
+    increment = builder.add(Move("b", 1, (1.0, 0.0, 0.5)))
+    np.testing.assert_allclose(
+        increment.values[pose_key("b", 1)], se2.compose(T_b, [1.0, 0.0, 0.5])
+    )
+    assert increment.factors[0].kind == "odometry"
+    assert increment.factors[0].keys == (pose_key("b", 0), pose_key("b", 1))
+    assert builder.events == 3
+
+
+def test_a_dominant_search_seeds_a_station_and_a_flat_one_does_not() -> None:
+    builder, _, _ = two_robots()
+    truth = np.array([4.0, 3.0, 1.0])
+    increment = builder.add(Localize("a", 5, search_pdf(truth, 0.05, math.radians(1.0))))
+    np.testing.assert_allclose(increment.values[pose_key("a", 5)], truth, atol=1e-6)
+    assert increment.factors[0].kind == "global"
+    # An existing, odometry-only station: a dominant search that agrees with the dead
+    # reckoning (within its uncertainty) replaces the guess; a gross one does not.
+    builder.add(Move("a", 6, (1.0, 0.0, 0.0)))
+    dead_reckoned = se2.compose(truth, np.array([1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(builder.guesses[pose_key("a", 6)], dead_reckoned)
+    builder.add(Move("a", 7, (1.0, 0.0, 0.0)))
+    wrong = se2.compose(dead_reckoned, np.array([2.0, 0.5, 0.0]))
+    builder.add(Localize("a", 7, search_pdf(se2.compose(wrong, [1.0, 0, 0]), 0.05, 0.02)))
+    np.testing.assert_allclose(
+        builder.guesses[pose_key("a", 7)], se2.compose(dead_reckoned, [1.0, 0, 0])
+    )
+    seeded = se2.compose(dead_reckoned, np.array([0.06, -0.04, 0.02]))
+    builder.add(Localize("a", 6, search_pdf(seeded, 0.05, math.radians(1.0))))
+    np.testing.assert_allclose(builder.guesses[pose_key("a", 6)], seeded, atol=1e-6)
+    flat = search_pdf(truth, 2.0, 0.5)  # no dominant peak
+    assert not flat.is_dominant(S.dominance_ratio, S.peak_radius_m, S.peak_radius_rad)
+    rejected = builder.add(Localize("a", 9, flat))
+    assert rejected.rejection is not None
+    assert "a9 is new and its search peak is not dominant" in rejected.rejection.reason
+
+
+def test_loop_closure_relative_to_an_earlier_station() -> None:
+    builder, _, _ = two_robots()
+    builder.add(Move("a", 1, (2.0, 0.0, 0.1)))
+    rel = np.array([2.0, 0.0, 0.1])
+    increment = builder.add(Localize("a", 1, search_pdf(rel, 0.05, 0.02), ("a", 0)))
+    spec = increment.factors[0]
+    assert spec.keys == (pose_key("a", 0), pose_key("a", 1))
+    np.testing.assert_allclose(spec.measurement, rel, atol=1e-6)
+    # The factor's covariance: the PDF's, in the measurement's tangent space, floored.
+    assert np.sqrt(spec.covariance[0, 0]) > S.global_min_sigma_m
+
+
+@pytest.mark.parametrize(
+    ("events", "pattern"),
+    [
+        ([Move("a", 1, (1.0, 0.0, 0.0))], "robot 'a' moves but has no pose yet"),
+        (
+            [Start("a", 3), Move("a", 2, (1.0, 0.0, 0.0))],
+            "moves to pose 2, not after its latest pose 3",
+        ),
+        (
+            [Start("a", 0), Observe(("b", 0), ("c", 0), 2.0, 0.5, 2.0, 0.5)],
+            "neither b0 nor c0 is known",
+        ),
+        (
+            [Start("a", 0), Observe(("a", 0), ("a", 1), 2.0, 0.5, 2.0, 0.5)],
+            "robot 'a' cannot observe itself",
+        ),
+        (
+            [Start("a", 0), Observe(("a", 0), ("b", 0), math.nan, 0.5, 2.0, 0.5)],
+            r"Observe measurement holds NaN or inf: \[nan",
+        ),
+        ([Start("a", 0), Move("a", 1, (math.inf, 0.0, 0.0))], "Move.delta holds NaN or inf"),
+        (
+            [Start("a", 0), Localize("a", 1, search_pdf(np.zeros(3), 0.05, 0.02), ("a", 7))],
+            "reference station a7 is not in the graph",
+        ),
+        (
+            [Start("a", 0), Localize("a", 0, search_pdf(np.zeros(3), 0.05, 0.02), ("a", 0))],
+            "cannot be localized against itself",
+        ),
+        ([Start("ab", 0)], "robot name must be one lowercase letter"),
+        ([Start("a", 0), "not an event"], "unknown event type str"),
+    ],
+)
+def test_inconsistent_event_streams_are_errors(events: list, pattern: str) -> None:  # type: ignore[type-arg]
+    builder = GraphBuilder(S)
+    builder.add_all(events[:-1])
+    with pytest.raises(EstimationError, match=pattern):
+        builder.add(events[-1])
+
+
+def test_degenerate_and_inconsistent_observations_are_rejected_with_a_reason() -> None:
+    builder, _, _ = two_robots()
+    d = S.beacon_offset_m
+    degenerate = builder.add(Observe(("a", 0), ("b", 0), 2.0, 0.5, d, 0.0))
+    assert degenerate.rejection is not None
+    assert "degenerate geometry: b·e^(iβ) ≈ d" in degenerate.rejection.reason
+    z = mutual_measurements(np.zeros(3), np.array([2.0, 1.5, -2.0]), S)
+    inconsistent = builder.add(Observe(("a", 0), ("b", 0), z[0] + 0.3, z[1], z[2], z[3]))
+    assert inconsistent.rejection is not None
+    pattern = r"s1/s2 gate: \|s1 - s2\| = 0\.(29|30)\d m is \d+\.\d sigma \(limit 3\)"
+    assert re.match(pattern, inconsistent.rejection.reason)
+    assert len(builder.rejections) == 2
+    assert [f.kind for f in builder.factors] == ["prior", "mutual"]
+
+
+def test_settings_are_validated() -> None:
+    with pytest.raises(
+        EstimationError, match=r"GraphSettings\.range_sigma_m must be positive, got 0"
+    ):
+        GraphSettings(range_sigma_m=0.0)
+    with pytest.raises(EstimationError, match=r"prediction_gate_probability must be in \(0, 1\)"):
+        GraphSettings(prediction_gate_probability=1.0)
+
+
+def test_unconstrained_robot_is_named() -> None:
+    builder, _, _ = two_robots()
+    builder.add(Move("b", 1, (1.0, 0.0, 0.0)))
+    factors = list(builder.factors)
+    keys = [*builder.guesses, pose_key("c", 0), pose_key("c", 1), pose_key("c", 2)]
+    factors += [
+        FactorSpec(
+            "odometry",
+            (pose_key("c", i), pose_key("c", i + 1)),
+            np.array([1.0, 0, 0]),
+            np.eye(3) * 0.01,
+            9,
+        )
+        for i in range(2)
+    ]
+    with pytest.raises(EstimationError, match=r"unconstrained: robot c \(3 poses, c0…c2\)"):
+        check_constrained(factors, keys)
+    # Without the mutual observation, b floats too.
+    no_mutual = [f for f in builder.factors if f.kind != "mutual"]
+    with pytest.raises(EstimationError, match=r"robot b \(2 poses, b0…b1\)"):
+        check_constrained(no_mutual, builder.guesses)
+    with pytest.raises(EstimationError, match="refers to c5, not in values"):
+        check_constrained([FactorSpec("prior", (pose_key("c", 5),), np.zeros(3), np.eye(3), 0)], [])
+
+
+# -- the gate against distractors ----------------------------------------------------------------
+
+
+def gate_trial(rng: np.random.Generator, distractor: bool) -> bool:
+    """One trial: b seen at b0, moves (odometry), is observed again; is the event rejected?
+
+    A distractor is a reflective object at beacon height somewhere in a 12 m × 9 m room around
+    the robots, detected instead of one of the two beacons (either robot's observation).
+    """
+    while True:
+        T_b0 = np.array([*rng.uniform(-4.0, 4.0, 2), rng.uniform(-np.pi, np.pi)])
+        step = np.array([rng.uniform(0.3, 1.5), rng.normal(0, 0.3), rng.normal(0, 0.8)])
+        T_b1 = se2.compose(T_b0, step)
+        if visible(np.zeros(3), T_b0, S) and visible(np.zeros(3), T_b1, S):
+            break
+    cov = odometry_covariance(step, S.odometry_sigma_m, S.odometry_sigma_per_m,
+                              S.odometry_sigma_rad, S.odometry_sigma_rad_per_rad)  # fmt: skip
+    measured_step = se2.compose(step, rng.multivariate_normal(np.zeros(3), cov))
+    noise = np.array([S.range_sigma_m, S.bearing_sigma_rad] * 2)
+    z0 = mutual_measurements(np.zeros(3), T_b0, S) + rng.normal(size=4) * noise
+    z1 = mutual_measurements(np.zeros(3), T_b1, S) + rng.normal(size=4) * noise
+    if distractor:
+        T_r_s = np.array([S.scanner_x_m, 0.0, 0.0])
+        true_beacon = se2.compose(T_b1, np.array([S.scanner_x_m + S.beacon_offset_m, 0, 0]))[:2]
+        observer = (
+            se2.compose(np.zeros(3), T_r_s) if rng.random() < 0.5 else se2.compose(T_b1, T_r_s)
+        )
+        while True:
+            p = np.array([rng.uniform(-6.0, 6.0), rng.uniform(-4.5, 4.5)])
+            local = se2.between(observer, np.array([*p, 0.0]))
+            r, phi = math.hypot(local[0], local[1]), math.atan2(local[1], local[0])
+            if 0.5 < r < 7.5 and abs(phi) > math.radians(10) and np.hypot(*(p - true_beacon)) > 0.3:
+                break
+        slot = 0 if observer[0] == S.scanner_x_m and observer[1] == 0.0 else 2
+        z1[slot], z1[slot + 1] = (
+            r + rng.normal(0, S.range_sigma_m),
+            phi + rng.normal(0, S.bearing_sigma_rad),
+        )
+    builder = GraphBuilder(S)
+    builder.add(Start("a", 0))
+    first = builder.add(Observe(("a", 0), ("b", 0), *z0))
+    if first.rejection is not None:  # the reference fix itself fell in the tail: start over
+        return gate_trial(rng, distractor)
+    builder.add(
+        Move("b", 1, (float(measured_step[0]), float(measured_step[1]), float(measured_step[2])))
+    )
+    return builder.add(Observe(("a", 0), ("b", 1), *z1)).rejection is not None
+
+
+def test_gate_rejects_99_percent_of_distractors_and_at_most_2_percent_of_true_events() -> None:
+    rng = np.random.default_rng(7)
+    trials = 1500
+    false_rejections = np.mean([gate_trial(rng, distractor=False) for _ in range(trials)])
+    rejections = np.mean([gate_trial(rng, distractor=True) for _ in range(trials)])
+    assert rejections >= 0.99
+    assert false_rejections <= 0.02
+
+
+def test_prediction_gate_catches_what_the_separation_check_cannot() -> None:
+    """A wrong geometry that keeps s1 = s2 passes the paper's check; the prediction gate stops it."""
+    builder, T_a, T_b = two_robots()
+    builder.add(Move("b", 1, (0.5, 0.0, 0.2)))
+    T_b1 = se2.compose(T_b, np.array([0.5, 0.0, 0.2]))
+    wrong = se2.compose(np.array([1.5, -1.0, 0.8]), T_b1)
+    z = mutual_measurements(T_a, wrong, S)
+    increment = builder.add(Observe(("a", 0), ("b", 1), *z))
+    assert increment.rejection is not None
+    assert increment.rejection.reason.startswith("prediction gate: Mahalanobis²")
+    right = builder.add(Observe(("a", 0), ("b", 1), *mutual_measurements(T_a, T_b1, S)))
+    assert right.rejection is None
+
+
+def test_leapfrog_stream_builds_a_consistent_graph() -> None:
+    scenario = leapfrog(20, 5, seed=3)
+    builder = GraphBuilder(S)
+    builder.add_all(scenario.events)
+    assert len(builder.guesses) == 20 * 6
+    check_constrained(builder.factors, builder.guesses)
+    chi2_at_truth = [f.mahalanobis2(scenario.truth) for f in builder.factors if f.kind != "prior"]
+    # calibrated noise: mean χ² per 3-dof factor near 3
+    assert np.mean(chi2_at_truth) == pytest.approx(3.0, abs=0.6)

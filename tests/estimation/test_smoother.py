@@ -1,0 +1,237 @@
+"""Batch and iSAM2 smoothing: same estimate, marginals, GNC against outliers, checkpoints."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from estimation import se2
+from estimation.errors import EstimationError
+from estimation.events import Move, Start
+from estimation.graph import GraphBuilder, GraphSettings
+from estimation.metrics import ate
+from estimation.smoother import IncrementalSmoother, factor_fingerprint, optimize_batch
+from estimation.synthetic import leapfrog
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def build(scenario_events: tuple, settings: GraphSettings | None = None) -> GraphBuilder:  # type: ignore[type-arg]
+    builder = GraphBuilder(settings)
+    builder.add_all(scenario_events)
+    return builder
+
+
+def as_array(estimate: dict[int, np.ndarray], keys: list[int]) -> np.ndarray:
+    return np.array([estimate[k] for k in keys])
+
+
+def assert_same_estimate(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> None:
+    assert sorted(a) == sorted(b)
+    keys = sorted(a)
+    diff = as_array(a, keys) - as_array(b, keys)
+    assert np.hypot(diff[:, 0], diff[:, 1]).max() < 1e-3  # 1 mm
+    assert np.degrees(np.abs(se2.wrap_angle(diff[:, 2]))).max() < 0.01  # 0.01°
+
+
+@pytest.fixture(scope="module")
+def mission():  # type: ignore[no-untyped-def]
+    return leapfrog(40, 9, seed=11)
+
+
+def test_batch_and_isam2_reach_the_same_estimate(mission) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    batch = optimize_batch(builder.factors, builder.initial_values(), robust="none")
+    smoother = IncrementalSmoother().run(mission.events)
+    assert smoother.events == len(mission.events)
+    assert len(smoother.update_seconds) == len(mission.events)
+    assert_same_estimate(smoother.estimate(), batch.estimate)
+    # and both are good: a few centimetres from the truth
+    keys = sorted(batch.estimate)
+    assert ate(as_array(batch.estimate, keys), mission.truth_array(keys), align=False).rmse_m < 0.1
+
+
+def test_gnc_on_clean_data_equals_plain_least_squares(mission) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    plain = optimize_batch(builder.factors, builder.initial_values(), robust="none")
+    gnc = optimize_batch(builder.factors, builder.initial_values(), robust="gnc_tls")
+    assert gnc.outliers == []
+    assert_same_estimate(gnc.estimate, plain.estimate)
+
+
+def test_marginal_covariances_are_consistent() -> None:
+    """NEES of every pose of 40 independent small missions (poses within one mission are
+    correlated, so many missions make the mean meaningful)."""
+    nees = []
+    for seed in range(40):
+        mission = leapfrog(8, 5, seed=100 + seed)
+        builder = build(mission.events)
+        batch = optimize_batch(builder.factors, builder.initial_values(), "none", marginals=True)
+        assert batch.covariances is not None
+        for key, cov in batch.covariances.items():
+            err = se2.log(se2.between(batch.estimate[key], mission.truth[key]))  # tangent space
+            nees.append(err @ np.linalg.solve(cov, err))
+    assert len(nees) == 40 * 48
+    assert 2.5 < np.mean(nees) < 3.5
+    assert np.mean(np.array(nees) < chi2.ppf(0.95, 3)) == pytest.approx(0.95, abs=0.025)
+
+
+def test_isam2_marginals_match_batch(mission) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    batch = optimize_batch(builder.factors, builder.initial_values(), robust="none", marginals=True)
+    assert batch.covariances is not None
+    smoother = IncrementalSmoother().run(mission.events)
+    for key in list(batch.covariances)[::40]:
+        np.testing.assert_allclose(
+            smoother.marginal_covariance(key), batch.covariances[key], rtol=0.02, atol=1e-6
+        )
+
+
+def test_gnc_with_10_percent_gross_outliers_on_2000_poses() -> None:
+    """Targets: ATE ≤ 0.10 m and within 10 % of the outlier-free ATE (prediction gate off, so
+    that every outlier reaches the graph)."""
+    settings = GraphSettings(prediction_gate_probability=None)
+    clean = leapfrog(200, 9, seed=5, settings=settings)
+    dirty = leapfrog(200, 9, seed=5, settings=settings, outlier_fraction=0.1)
+    wrong = len(dirty.outliers)
+    assert wrong / (dirty.mutual_events + dirty.global_events) == pytest.approx(0.1, abs=0.02)
+    clean_builder, dirty_builder = build(clean.events, settings), build(dirty.events, settings)
+    keys = sorted(clean_builder.guesses)
+    assert len(keys) == 2000
+    truth = clean.truth_array(keys)
+    reference = optimize_batch(clean_builder.factors, clean_builder.initial_values(), "none")
+    ate_clean = ate(as_array(reference.estimate, keys), truth, align=False).rmse_m
+    gnc = optimize_batch(dirty_builder.factors, dirty_builder.initial_values(), "gnc_tls")
+    ate_gnc = ate(as_array(gnc.estimate, keys), truth, align=False).rmse_m
+    assert ate_gnc <= 0.10
+    assert ate_gnc <= 1.10 * ate_clean
+    rejected_events = {dirty_builder.factors[i].event for i in gnc.outliers}
+    caught = len(rejected_events & dirty.outliers) / wrong
+    false = len(rejected_events - dirty.outliers) / (len(dirty_builder.factors) - wrong)
+    assert caught >= 0.98  # the few left are the only tie of a pose whose true fix was gated out
+    assert false <= 0.005
+    # Without robust estimation the same graph is ruined.
+    plain = optimize_batch(dirty_builder.factors, dirty_builder.initial_values(), "none")
+    assert ate(as_array(plain.estimate, keys), truth, align=False).rmse_m > 0.5
+
+
+def test_batch_refuses_an_unconstrained_robot() -> None:
+    builder = GraphBuilder()
+    builder.add(Start("a", 0))
+    builder.add(Move("a", 1, (1.0, 0.0, 0.0)))
+    factors = [f for f in builder.factors if f.kind != "prior"]
+    with pytest.raises(EstimationError, match=r"unconstrained: robot a \(2 poses, a0…a1\)"):
+        optimize_batch(factors, builder.initial_values())
+
+
+def test_checkpoint_round_trip_in_process(tmp_path: Path, mission) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "isam.npz"
+    half = len(mission.events) // 2
+    first = IncrementalSmoother().run(mission.events[:half], checkpoint=path, checkpoint_every=25)
+    assert first.events == half
+    resumed = IncrementalSmoother.resume(path, mission.events, checkpoint_every=25)
+    whole = IncrementalSmoother().run(mission.events)
+    assert resumed.events == len(mission.events)
+    assert factor_fingerprint(resumed.builder.factors) == factor_fingerprint(whole.builder.factors)
+    assert_same_estimate(resumed.estimate(), whole.estimate())
+
+
+KILLED_RUN = """
+import os, signal, sys
+from estimation.synthetic import leapfrog
+from estimation.smoother import IncrementalSmoother
+
+events = leapfrog(40, 9, seed=11).events
+kill_at = int(sys.argv[2])
+
+def stream():
+    for number, event in enumerate(events):
+        if number == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)  # dies mid-run, between checkpoints
+        yield event
+
+IncrementalSmoother().run(stream(), checkpoint=sys.argv[1], checkpoint_every=25)
+"""
+
+
+def test_a_killed_run_resumes_to_the_same_estimate_without_losing_events(
+    tmp_path: Path, mission
+) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "isam.npz"
+    kill_at = 2 * len(mission.events) // 3 + 7  # not a multiple of the checkpoint period
+    proc = subprocess.run(
+        [sys.executable, "-c", KILLED_RUN, str(path), str(kill_at)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=False,
+        timeout=120,
+    )
+    assert proc.returncode == -9, proc.stderr
+    with np.load(path) as saved:
+        checkpointed = int(saved["events"])
+    assert checkpointed == (kill_at // 25) * 25  # the last checkpoint before the kill
+    assert not list(tmp_path.glob(".isam.*"))  # no half-written temporary left behind
+    resumed = IncrementalSmoother.resume(path, mission.events)
+    assert resumed.events == len(mission.events)
+    batch = optimize_batch(resumed.builder.factors, resumed.builder.initial_values(), "none")
+    assert_same_estimate(resumed.estimate(), batch.estimate)
+    whole = IncrementalSmoother().run(mission.events)
+    assert factor_fingerprint(resumed.builder.factors) == factor_fingerprint(whole.builder.factors)
+    assert_same_estimate(resumed.estimate(), whole.estimate())
+
+
+def test_checkpoint_errors(tmp_path: Path, mission) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(EstimationError, match=r"missing\.npz: checkpoint not found"):
+        IncrementalSmoother.restore(tmp_path / "missing.npz", iter(mission.events))
+    corrupt = tmp_path / "corrupt.npz"
+    corrupt.write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(EstimationError, match=r"corrupt\.npz: not a readable checkpoint"):
+        IncrementalSmoother.restore(corrupt, iter(mission.events))
+    path = tmp_path / "isam.npz"
+    IncrementalSmoother().run(mission.events[:100], checkpoint=path)
+    with pytest.raises(
+        EstimationError, match="checkpoint holds 100 events but the stream has only 50"
+    ):
+        IncrementalSmoother.restore(path, iter(mission.events[:50]))
+    other = leapfrog(40, 9, seed=12).events
+    with pytest.raises(EstimationError, match="does not rebuild the checkpointed graph"):
+        IncrementalSmoother.restore(path, iter(other))
+
+
+def test_isam2_reports_an_indeterminate_update() -> None:
+    import gtsam
+
+    smoother = IncrementalSmoother()
+    smoother.add(Start("a", 0))
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    z0, z1 = gtsam.symbol("z", 0), gtsam.symbol("z", 1)
+    values.insert(z0, gtsam.Pose2())
+    values.insert(z1, gtsam.Pose2(1.0, 0.0, 0.0))
+    graph.add(
+        gtsam.BetweenFactorPose2(z0, z1, gtsam.Pose2(1, 0, 0), gtsam.noiseModel.Unit.Create(3))
+    )  # two new poses tied only to each other: nothing fixes where they are
+    with pytest.raises(EstimationError, match="iSAM2 update at test failed"):
+        smoother._update(graph, values, "test")
+
+
+def test_huber_and_cauchy_kernels_run_in_both_smoothers(mission) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    plain = optimize_batch(builder.factors, builder.initial_values(), robust="none")
+    for kernel in ("huber", "cauchy"):
+        robust = optimize_batch(builder.factors, builder.initial_values(), robust=kernel)  # type: ignore[arg-type]
+        keys = sorted(plain.estimate)
+        diff = as_array(robust.estimate, keys) - as_array(plain.estimate, keys)
+        assert 0 < np.abs(diff[:, :2]).max() < 0.05  # different weights, same solution nearby
+        # iSAM2 re-weights an M-estimator only where it relinearizes: close, not identical.
+        smoother = IncrementalSmoother(kernel=kernel).run(mission.events)  # type: ignore[arg-type]
+        diff = as_array(smoother.estimate(), keys) - as_array(robust.estimate, keys)
+        assert np.hypot(diff[:, 0], diff[:, 1]).max() < 0.03
+    assert math.isfinite(plain.error)
