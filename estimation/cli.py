@@ -55,10 +55,11 @@ ConfigOption = Annotated[
 
 
 def _known_errors() -> tuple[type[BaseException], ...]:
+    from estimation.errors import EstimationError
     from mapping.errors import MapError
     from sensors.errors import SensorError
 
-    return (ConfigError, SensorError, MapError, OSError)
+    return (ConfigError, SensorError, MapError, EstimationError, OSError)
 
 
 def _describe(exc: BaseException) -> str:
@@ -120,7 +121,7 @@ def demo(
     with err.status("simulating the essex_lab mission…", spinner="dots") as status:
         sim = run_simulation(
             resolve_builtin("missions", "essex_lab"), out, overrides=overrides, seed=seed,
-            progress=lambda robot, f: status.update(f"simulating: sensors of robot {robot} ({f:.0%})"),
+            progress=lambda robot, f: status.update(f"simulating: robot {robot} ({f:.0%})"),
         )  # fmt: skip
         status.update("decoding, mutual localization, pose graph, fusion…")
         output = run_batch(out, overrides=overrides, progress=status.update)
@@ -144,7 +145,8 @@ def demo(
     console.print(
         f"  mutual observations: {output.report['observations']}; map: "
         f"{output.report.get('occupied_voxels', 0):,} occupied voxels, precision "
-        f"{quality['precision']:.3f}, recall {quality['recall']:.3f} at {quality['resolution_m']:g} m"
+        f"{quality['precision']:.3f}, recall {quality['recall']:.3f} "
+        f"at {quality['resolution_m']:g} m"
     )
     result = out / "result"
     console.print(f"  dataset: {out}/  result: {result}/  report: {result / 'report.md'}")

@@ -226,7 +226,7 @@ def plan_leapfrog(
         at: list[float] | None = None
         if k > 0:
             heading = (
-                route.heading(ref, poses[mapper], geometry)
+                route.heading(ref)
                 if route.active
                 else _best_heading(ref, poses[mapper], space, coverage, geometry, band)
             )
@@ -337,17 +337,12 @@ class _Route:
         while self.active and self.distance(pose) < reached_m:
             self.next += 1
 
-    def heading(self, pose: np.ndarray, mapper: np.ndarray, geometry: _Geometry) -> float:
-        """Towards the next waypoint along the shortest path — turned, within 45°, so that the
-        mapper's beacon stays in view if that is possible."""
+    def heading(self, pose: np.ndarray) -> float:
+        """Towards the next waypoint along the shortest path. (Turning towards the other robot
+        instead, to observe it at the station, leaves no forward mapper poses in corridors.)"""
         legs = self.space.path(pose[:2], self.waypoints[self.next])
         target = legs[1] if legs is not None and len(legs) > 1 else self.waypoints[self.next]
-        ahead = math.atan2(target[1] - pose[1], target[0] - pose[0])
-        for offset in np.radians([0, 10, -10, 20, -20, 30, -30, 40, -40]):
-            candidate = np.array([pose[0], pose[1], ahead + offset])
-            if geometry.mutual(candidate, mapper, (0.5, 8.0)):
-                return float(ahead + offset)
-        return ahead
+        return math.atan2(target[1] - pose[1], target[0] - pose[0])
 
 
 def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverage: CoverageModel,
