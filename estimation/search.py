@@ -1,0 +1,913 @@
+"""Exhaustive (x, y, θ) search of a local 2D band grid against a global one (DESIGN §7, paper §2.2).
+
+**Metric.** Each known cell of a band with occupancy p gets the value
+
+    v(p) = 2p − 1              for p ≥ ½   (occupied evidence, up to +1)
+    v(p) = w · (2p − 1)        for p < ½   (free evidence, down to −w; w = ``free_weight``)
+
+and unknown cells get 0. The score of a pose T (of the local grid's frame in the global grid's
+frame) is the correlation ``score(T) = Σ_k v_L(k) · v_G(cell of the global grid containing T·c_k)``
+over the known local cells k with centres c_k: occupied on occupied and free on free agree
+(positive), occupied on free disagree (negative), and an unknown cell on either side — or a
+local cell that falls off the global grid — counts nothing. For binary cells and w = 1, this is
+the log-likelihood of the local grid given the map and the pose, up to a constant, when each cell
+agrees with the map with probability q: log q or log(1 − q) per cell is
+½·log(q(1 − q)) + ½·logit(q)·v_L·v_G. The pose PDF is therefore
+
+    P(T) ∝ exp(β · score(T)),
+
+where β (``beta``) stands for ½·logit(q) divided by the number of cells that one independent
+error spans (neighbouring cells are not independent); it is calibrated on simulated searches by
+maximising the probability the PDF gives to the true pose (see ``calibrate_beta``).
+
+**Lattice.** Translations step by the grids' resolution r; their lattice is offset so that at
+θ = 0 local cell centres land on global cell centres; rotations step by 2π/T over the whole
+circle. The global cell "containing" a point is ⌊(q − origin)/r⌋ per axis.
+
+**Exactness.** For one rotation the rotated cell centres fall at fixed offsets o_k = ⌊R c_k/r + s⌋
+from the translation, so the scores of every translation are one cross-correlation of a splatted
+image (Σ v_L of the cells at each offset) with the global values, computed with real FFTs — the
+result equals the per-pose loop (``score_poses_loop``, the paper's method) up to float32
+round-off. When the local grid's frame sits on a cell corner or a cell centre and T is a multiple
+of 4, a quarter turn of the rotated cells is an exact lattice permutation, so the spectrum of one
+splatted image serves four rotations, against four rotated copies of the global spectrum.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.fft as sfft
+from numba import njit, prange
+
+from estimation.errors import EstimationError
+from estimation.posepdf import PosePdf
+from mapping.band import Band
+
+__all__ = [
+    "SearchParams",
+    "SearchResult",
+    "WindowStep",
+    "WindowedResult",
+    "best_pose_outside",
+    "correlate_all",
+    "match_values",
+    "normalise",
+    "peak_covariance",
+    "pose_lattice",
+    "refine_peak",
+    "result_from_scores",
+    "score_poses_loop",
+    "search",
+    "windowed_search",
+    "yaw_lattice",
+]
+
+#: Fractions of a cell this close to an integer count as on it (float round-off in origins).
+_SNAP = 1e-6
+#: A point within this many cells below a cell boundary belongs to the cell above it, so that
+#: centres exactly on a boundary (e.g. on the diagonal at 45°) fall the same way whatever the
+#: float round-off.
+_EDGE = 1e-9
+#: Rotated centres this close to a boundary are ties: the quarter-turn shortcut is not used.
+_TIE = 1e-7
+
+#: The quarter-turn rotation on integer (x, y) vectors: R·(x, y) = (−y, x).
+_QUARTER = np.array([[0, -1], [1, 0]], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class SearchParams:
+    """Parameters of a search. Names follow the ``search`` section of the configuration; angles
+    in radians here (degrees in the configuration)."""
+
+    angular_resolution_rad: float = math.radians(1.0)
+    free_weight: float = 0.5
+    beta: float = 0.05
+    peak_radius_m: float = 0.5
+    peak_radius_rad: float = math.radians(10.0)
+    dominance_ratio: float = 2.0
+    workers: int = 0  # threads for the FFT loop; 0: one per CPU, at most 4
+
+    def __post_init__(self) -> None:
+        for name in ("angular_resolution_rad", "beta", "peak_radius_m", "peak_radius_rad"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise EstimationError(f"search {name} must be a positive number, got {value!r}")
+        if not (math.isfinite(self.free_weight) and self.free_weight >= 0):
+            raise EstimationError(f"search free_weight must be >= 0, got {self.free_weight!r}")
+        if not self.dominance_ratio >= 1:
+            raise EstimationError(
+                f"search dominance_ratio must be >= 1, got {self.dominance_ratio!r}"
+            )
+        if self.workers < 0:
+            raise EstimationError(f"search workers must be >= 0, got {self.workers}")
+
+    def thread_count(self) -> int:
+        return self.workers or min(4, os.cpu_count() or 1)
+
+
+# -- inputs ------------------------------------------------------------------------------------
+
+
+def match_values(band: Band, free_weight: float) -> np.ndarray:
+    """(H, W) float64 cell values of the metric: 2p − 1 on occupied evidence,
+    ``free_weight``·(2p − 1) on free evidence, 0 on unknown cells. EstimationError on
+    occupancy outside [0, 1] or NaN on a known cell."""
+    occupancy = np.asarray(band.occupancy, dtype=np.float64)
+    known = np.asarray(band.known, dtype=bool)
+    if known.any():
+        p = occupancy[known]
+        if not np.isfinite(p).all() or p.min() < 0.0 or p.max() > 1.0:
+            raise EstimationError("band occupancy must lie within [0, 1] on known cells")
+    v = 2.0 * np.where(known, occupancy, 0.5) - 1.0
+    return np.asarray(np.where(v < 0.0, free_weight * v, v))
+
+
+def yaw_lattice(angular_resolution_rad: float) -> np.ndarray:
+    """(T,) yaws 0, Δ, …, 2π − Δ; EstimationError unless Δ divides the circle."""
+    count = round(2.0 * math.pi / angular_resolution_rad)
+    if count < 1 or abs(count * angular_resolution_rad - 2.0 * math.pi) > 1e-6:
+        raise EstimationError(
+            f"angular resolution {math.degrees(angular_resolution_rad):g}° must divide 360°"
+        )
+    return np.arange(count) * (2.0 * math.pi / count)
+
+
+def _check_pair(local: Band, global_: Band) -> float:
+    r = float(global_.resolution_m)
+    if abs(float(local.resolution_m) - r) > 1e-9 * r:
+        raise EstimationError(
+            f"scan grid resolution {local.resolution_m:g} m differs from the map's {r:g} m"
+        )
+    if not np.isfinite(local.lower_xy).all() or not np.isfinite(global_.lower_xy).all():
+        raise EstimationError("grid origins must be finite")
+    return r
+
+
+def _frac(value: np.ndarray) -> np.ndarray:
+    """Fractional parts in [0, 1), snapped to 0 within round-off."""
+    f = np.asarray(value, dtype=float) % 1.0
+    return np.where((f < _SNAP) | (f > 1.0 - _SNAP), 0.0, f)
+
+
+@dataclass(frozen=True)
+class _Cells:
+    """The informative local cells: centres in cells (local frame / r), and their values."""
+
+    u: np.ndarray  # (K, 2) float64, x and y
+    w: np.ndarray  # (K,) float64, non-zero
+
+
+def _local_cells(local: Band, free_weight: float) -> _Cells:
+    values = match_values(local, free_weight)
+    rows, cols = np.nonzero(values)
+    if len(rows) == 0:
+        raise EstimationError("scan grid has no known cell with occupied or free evidence")
+    r = float(local.resolution_m)
+    origin = np.asarray(local.lower_xy, dtype=float) / r
+    u = np.column_stack([origin[0] + cols + 0.5, origin[1] + rows + 0.5])
+    return _Cells(u=u, w=values[rows, cols])
+
+
+def pose_lattice(
+    local: Band, global_: Band, window_m: tuple[float, float, float, float] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The translation lattice of a search: (x_m (X,), y_m (Y,), s (2,)).
+
+    Translations are ``origin_G + r·(s + m)`` for integer m, with the sub-cell offset s chosen
+    so that at θ = 0 local cell centres land on global cell centres. ``window_m`` (x_min, x_max,
+    y_min, y_max), half-open, default the global grid's extent, is clipped to that extent.
+    """
+    r = _check_pair(local, global_)
+    s = _frac(-np.asarray(local.lower_xy, dtype=float) / r)
+    x0, x1, y0, y1 = global_.extent()
+    if window_m is not None:
+        wx0, wx1, wy0, wy1 = (float(v) for v in window_m)
+        if not (wx0 < wx1 and wy0 < wy1) or not all(map(math.isfinite, window_m)):
+            raise EstimationError(f"search window must be a non-empty rectangle, got {window_m}")
+        if wx1 <= x0 or wx0 >= x1 or wy1 <= y0 or wy0 >= y1:
+            raise EstimationError(
+                f"search window x {wx0:g}…{wx1:g} m, y {wy0:g}…{wy1:g} m lies outside the map "
+                f"(x {x0:g}…{x1:g} m, y {y0:g}…{y1:g} m)"
+            )
+        x0, x1, y0, y1 = max(x0, wx0), min(x1, wx1), max(y0, wy0), min(y1, wy1)
+    axes = []
+    for k, (lo, hi) in enumerate(((x0, x1), (y0, y1))):
+        base = float(global_.lower_xy[k])
+        first = math.ceil((lo - base) / r - s[k] - _SNAP)
+        last = math.ceil((hi - base) / r - s[k] - _SNAP) - 1
+        if last < first:
+            raise EstimationError(
+                f"search window {window_m} holds no pose at the map's {r:g} m lattice"
+            )
+        axes.append(base + r * (s[k] + np.arange(first, last + 1)))
+    return axes[0], axes[1], s
+
+
+# -- the per-pose loop (the paper's method; the reference for the fast search) -----------------
+
+
+def score_poses_loop(
+    local: Band,
+    global_: Band,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    free_weight: float,
+    *,
+    progress: Callable[[int], None] | None = None,
+) -> np.ndarray:
+    """Scores (T, Y, X) of every pose by the per-pose loop: transform the known local cells, look
+    up the global cell holding each, sum the products. The paper's search; slow on purpose.
+
+    ``progress`` is called with the index of each rotation once it is done.
+    """
+    r = _check_pair(local, global_)
+    cells = _local_cells(local, free_weight)
+    centres = cells.u * r
+    values = match_values(global_, free_weight)
+    rows, cols = values.shape
+    origin = np.asarray(global_.lower_xy, dtype=float)
+    scores = np.zeros((len(yaw_rad), len(y_m), len(x_m)))
+    for t, yaw in enumerate(yaw_rad):
+        c, s = math.cos(yaw), math.sin(yaw)
+        rotated = centres @ np.array([[c, s], [-s, c]])  # (K, 2): R·c_k per row
+        for iy, y in enumerate(y_m):
+            for ix, x in enumerate(x_m):
+                shifted = (rotated + np.array([x - origin[0], y - origin[1]])) / r
+                index = np.floor(shifted + _EDGE).astype(np.int64)
+                gx, gy = index[:, 0], index[:, 1]
+                inside = (gx >= 0) & (gx < cols) & (gy >= 0) & (gy < rows)
+                scores[t, iy, ix] = np.dot(cells.w[inside], values[gy[inside], gx[inside]])
+        if progress is not None:
+            progress(t)
+    return scores
+
+
+# -- the fast search ---------------------------------------------------------------------------
+
+
+def _box_of(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return points.min(axis=0), points.max(axis=0)
+
+
+def _rotate_box(k: int, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The box R^k·[lo, hi] (integer vectors, R the quarter turn)."""
+    corners = np.array([[lo[0], lo[1]], [lo[0], hi[1]], [hi[0], lo[1]], [hi[0], hi[1]]])
+    turned = corners @ np.linalg.matrix_power(_QUARTER, k).T
+    return _box_of(turned)
+
+
+_DIHEDRAL: list[Callable[[np.ndarray], np.ndarray]] = [
+    lambda a: a,
+    lambda a: np.rot90(a, 1),
+    lambda a: np.rot90(a, 2),
+    lambda a: np.rot90(a, 3),
+    lambda a: a.T,
+    lambda a: np.rot90(a, 1).T,
+    lambda a: np.rot90(a, 2).T,
+    lambda a: np.rot90(a, 3).T,
+]
+
+
+@njit(cache=True, nogil=True)
+def _splat(
+    u: np.ndarray,
+    w: np.ndarray,
+    rotation: np.ndarray,
+    s: np.ndarray,
+    low: np.ndarray,
+    out: np.ndarray,
+) -> bool:
+    """Add each cell's value at its offset ⌊R·u + s⌋ − low into ``out`` (zeroed by the caller);
+    True when some rotated centre lies within round-off of a cell boundary (a tie)."""
+    c00, c01, c10, c11 = rotation[0, 0], rotation[0, 1], rotation[1, 0], rotation[1, 1]
+    tie = False
+    for k in range(len(w)):
+        ax = c00 * u[k, 0] + c01 * u[k, 1] + s[0]
+        ay = c10 * u[k, 0] + c11 * u[k, 1] + s[1]
+        if abs(ax - np.rint(ax)) < _TIE or abs(ay - np.rint(ay)) < _TIE:
+            tie = True
+        ox = math.floor(ax + _EDGE) - low[0]
+        oy = math.floor(ay + _EDGE) - low[1]
+        out[oy, ox] += w[k]
+    return tie
+
+
+@dataclass
+class _Turn:
+    """Quarter turn k: the global values turned by k·90°, their spectrum, the window layout."""
+
+    k: int
+    parity: int  # k % 2: which FFT shape
+    spectrum: np.ndarray | None  # rfft2 of the padded, turned global values; None: all zero
+    b_min: np.ndarray  # (2,) lowest splat offset over the rotations this turn serves
+    size: np.ndarray  # (2,) x, y: window size in turned coordinates
+    view: Callable[[np.ndarray], np.ndarray]  # turned window → (Y, X) window layout
+
+
+@dataclass
+class _Plan:
+    """The integer geometry of one search (in cells; vectors are (x, y))."""
+
+    rotations: np.ndarray  # (T, 2, 2)
+    base: np.ndarray  # indices of the rotations that are splatted
+    quarter: bool  # each base rotation t also serves t + T/4, t + T/2, t + 3T/4
+    cells: _Cells
+    s: np.ndarray
+    b: np.ndarray  # (T, 2) int64: lowest splat offset of each rotation
+    extent: int  # splat box edge
+    shapes: tuple[tuple[int, int], tuple[int, int]]  # (rows, cols) FFT shape per parity
+    turns: list[_Turn]
+
+
+def _rotations(yaw_rad: np.ndarray) -> np.ndarray:
+    """(T, 2, 2) rotation matrices, exact at multiples of 90°."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    for arr in (c, s):
+        arr[np.abs(arr) < 1e-15] = 0.0
+        arr[np.abs(np.abs(arr) - 1.0) < 1e-15] = np.sign(arr[np.abs(np.abs(arr) - 1.0) < 1e-15])
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def _fft_cost(shape: tuple[int, int]) -> float:
+    n = shape[0] * shape[1]
+    return n * math.log2(max(n, 2))
+
+
+def _fft_shapes(need: list[np.ndarray], extent: int) -> tuple[tuple[int, int], tuple[int, int]]:
+    """(rows, cols) FFT shapes for even and odd quarter turns: each its own, or one shape for
+    both (one forward transform per base rotation instead of two) when that is cheaper."""
+    shapes = []
+    for parity in (0, 1):
+        n = np.maximum(need[parity], extent)
+        shapes.append(
+            (sfft.next_fast_len(int(n[1]), real=True), sfft.next_fast_len(int(n[0]), real=True))
+        )
+    if shapes[0] == shapes[1] or not need[1].any():
+        return shapes[0], shapes[1]
+    side = (max(shapes[0][0], shapes[1][0]), max(shapes[0][1], shapes[1][1]))
+    separate = 3 * (_fft_cost(shapes[0]) + _fft_cost(shapes[1]))
+    shared = 5 * _fft_cost(side)
+    return (side, side) if shared < separate else (shapes[0], shapes[1])
+
+
+def _plan(
+    cells: _Cells,
+    global_values: np.ndarray,
+    s: np.ndarray,
+    m_lo: np.ndarray,
+    m_hi: np.ndarray,
+    yaw_rad: np.ndarray,
+    quarter: bool,
+) -> _Plan:
+    count = len(yaw_rad)
+    base = np.arange(count // 4 if quarter else count)
+    rotations = _rotations(yaw_rad)
+    # Splat boxes: every centre lies within ``reach`` of the rotated pivot.
+    pivot = np.round(cells.u.mean(axis=0))
+    reach = float(np.sqrt(((cells.u - pivot) ** 2).sum(axis=1)).max())
+    b = np.floor(rotations @ pivot + s - reach - 1e-6).astype(np.int64)
+    extent = math.floor(2 * reach + 2e-6) + 2
+
+    rows_g, cols_g = np.nonzero(global_values)
+    if len(rows_g) == 0:
+        raise EstimationError("map grid has no known cell with occupied or free evidence")
+    g_lo = np.array([cols_g.min(), rows_g.min()])
+    g_hi = np.array([cols_g.max(), rows_g.max()])
+
+    z = s - 0.5  # a quarter-turn-symmetric point of the lattice in quarter mode
+    mx, my = np.meshgrid(np.arange(m_lo[0], m_hi[0] + 1), np.arange(m_lo[1], m_hi[1] + 1))
+    need = [np.zeros(2, dtype=np.int64), np.zeros(2, dtype=np.int64)]
+    turns: list[_Turn] = []
+    regions = []
+    for k in range(4 if quarter else 1):
+        Rk = np.linalg.matrix_power(_QUARTER, k)
+        back = (4 - k) % 4
+        D = np.round(z - Rk @ z).astype(np.int64)  # offsets turned by k: R^k·o + D
+        w_lo, w_hi = _rotate_box(back, D + m_lo, D + m_hi)  # window m' = R^-k·(D + m)
+        sup_lo, sup_hi = _rotate_box(back, g_lo, g_hi)  # support of G_k[u] = G[R^k·u]
+        # Turn 0 also computes rotations directly (all of them, or those with ties).
+        served = b if k == 0 else b[base]
+        b_min, b_max = served.min(axis=0), served.max(axis=0)
+        lo = np.maximum(b_min + w_lo, sup_lo)
+        hi = np.minimum(b_max + extent - 1 + w_hi, sup_hi)
+        size = w_hi - w_lo + 1
+        turned = np.linalg.matrix_power(_QUARTER, back) @ (
+            np.stack([mx.ravel(), my.ravel()]) + D[:, None]
+        )
+        flat = ((turned[1] - w_lo[1]) * size[0] + (turned[0] - w_lo[0])).reshape(mx.shape)
+        ids = np.arange(size[1] * size[0]).reshape(size[1], size[0])
+        view = next(f for f in _DIHEDRAL if f(ids).shape == flat.shape and (f(ids) == flat).all())
+        turns.append(_Turn(k=k, parity=k % 2, spectrum=None, b_min=b_min, size=size, view=view))
+        if np.any(hi < lo):
+            continue  # the window never reaches the map under this turn: scores stay 0
+        n_lo = b_min + w_lo - lo  # ≤ 0: where the window starts, relative to the region
+        length = hi - lo + 1
+        # No wrap-around: the region fits after the shift, the farthest product lands in the
+        # zero padding, and every rotation's window lies inside the output.
+        span = b_max - b_min
+        need[k % 2] = np.maximum.reduce(
+            [need[k % 2], length - n_lo, extent + size - 1 + span + n_lo, span + size]
+        )
+        regions.append((turns[-1], Rk, lo, length, n_lo))
+    shapes = _fft_shapes(need, extent)
+    for turn, Rk, lo, length, n_lo in regions:
+        ux, uy = np.meshgrid(lo[0] + np.arange(length[0]), lo[1] + np.arange(length[1]))
+        gx = Rk[0, 0] * ux + Rk[0, 1] * uy
+        gy = Rk[1, 0] * ux + Rk[1, 1] * uy
+        inside = (gx >= 0) & (gx < global_values.shape[1]) & (gy >= 0)
+        inside &= gy < global_values.shape[0]
+        padded = np.zeros(shapes[turn.parity], dtype=np.float32)
+        target = padded[-n_lo[1] : -n_lo[1] + length[1], -n_lo[0] : -n_lo[0] + length[0]]
+        target[inside] = global_values[gy[inside], gx[inside]]
+        turn.spectrum = sfft.rfft2(padded)
+    return _Plan(
+        rotations=rotations,
+        base=base,
+        quarter=quarter,
+        cells=cells,
+        s=s,
+        b=b,
+        extent=extent,
+        shapes=shapes,
+        turns=turns,
+    )
+
+
+def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray) -> None:
+    """Fill ``out[t]`` for every rotation served by the base rotations ``plan.base[chunk]``."""
+    cells, extent = plan.cells, plan.extent
+    step = len(plan.rotations) // 4
+    splat = np.zeros((extent, extent), dtype=np.float32)
+
+    def spectrum(t: int, parity: int) -> tuple[np.ndarray, bool]:
+        splat.fill(0.0)
+        tie = _splat(cells.u, cells.w, plan.rotations[t], plan.s, plan.b[t], splat)
+        rows, cols = plan.shapes[parity]
+        # Zero rows transform to zero: transform the splat's rows, then pad the columns' length.
+        half = sfft.fft(sfft.rfft(splat, n=cols, axis=1), n=rows, axis=0)
+        return np.conj(half), tie
+
+    def emit(t: int, turn: _Turn, local_spectrum: np.ndarray, b: np.ndarray) -> None:
+        if turn.spectrum is None:
+            out[t] = 0.0
+            return
+        x0, y0 = b - turn.b_min
+        # Inverse along y, then along x only for the rows of the window.
+        half = sfft.ifft(local_spectrum * turn.spectrum, axis=0)[y0 : y0 + turn.size[1]]
+        corr = sfft.irfft(half, n=plan.shapes[turn.parity][1], axis=1, overwrite_x=True)
+        out[t] = turn.view(corr[:, x0 : x0 + turn.size[0]])
+
+    for j in plan.base[chunk]:
+        j = int(j)
+        first, tie = spectrum(j, 0)
+        if not plan.quarter:
+            emit(j, plan.turns[0], first, plan.b[j])
+            continue
+        if tie:
+            # A centre on a cell boundary: the quarter-turn permutation would round it the
+            # other way, so these four rotations are splatted one by one.
+            emit(j, plan.turns[0], first, plan.b[j])
+            for k in (1, 2, 3):
+                t = j + k * step
+                emit(t, plan.turns[0], spectrum(t, 0)[0], plan.b[t])
+            continue
+        odd = first if plan.shapes[1] == plan.shapes[0] else spectrum(j, 1)[0]
+        for turn in plan.turns:
+            emit(j + turn.k * step, turn, first if turn.parity == 0 else odd, plan.b[j])
+
+
+def correlate_all(
+    local: Band,
+    global_: Band,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    free_weight: float,
+    workers: int = 1,
+) -> np.ndarray:
+    """float32 scores (T, Y, X) of every pose of the lattice ``pose_lattice`` gives, by FFT.
+
+    Equal to ``score_poses_loop`` up to float32 round-off.
+    """
+    r = _check_pair(local, global_)
+    cells = _local_cells(local, free_weight)
+    values = match_values(global_, free_weight)
+    origin = np.asarray(global_.lower_xy, dtype=float)
+    s = _frac(-np.asarray(local.lower_xy, dtype=float) / r)
+    m_lo = np.array(
+        [round((x_m[0] - origin[0]) / r - s[0]), round((y_m[0] - origin[1]) / r - s[1])]
+    )
+    m_hi = m_lo + np.array([len(x_m), len(y_m)]) - 1
+    local_frac = _frac(np.asarray(local.lower_xy, dtype=float) / r)
+    symmetric = local_frac[0] == local_frac[1] and local_frac[0] in (0.0, 0.5)
+    plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
+    out = np.empty((len(yaw_rad), len(y_m), len(x_m)), dtype=np.float32)
+    chunks = [c for c in np.array_split(np.arange(len(plan.base)), max(1, workers)) if len(c)]
+    if len(chunks) == 1:
+        _correlate(plan, chunks[0], out)
+    else:
+        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
+            for future in [pool.submit(_correlate, plan, c, out) for c in chunks]:
+                future.result()
+    return out
+
+
+# -- the peak: refinement, dominance, covariance -----------------------------------------------
+
+
+def _reach(radius: float, step: float) -> int:
+    return int(radius / step + 1e-9) if step > 0 else 0
+
+
+def _steps(x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray) -> tuple[float, float, float]:
+    def step(a: np.ndarray) -> float:
+        return float(a[1] - a[0]) if len(a) > 1 else 0.0
+
+    return step(x_m), step(y_m), step(yaw_rad)
+
+
+def _wraps(yaw_rad: np.ndarray) -> bool:
+    step = _steps(yaw_rad, yaw_rad, yaw_rad)[2]
+    return step > 0 and abs(step * len(yaw_rad) - 2.0 * math.pi) < 1e-6
+
+
+def _neighbourhood(
+    index: tuple[int, int, int],
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    radius_m: float,
+    radius_rad: float,
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray, np.ndarray]:
+    """The peak's neighbourhood as ``PosePdf`` defines it: the cells within ``radius_m`` (x, y)
+    and ``radius_rad`` (yaw, wrapped) of the cell ``index``. Returns the index box (t, y, x
+    arrays), the (t, y, x) mask of the cells inside it, and their offsets (n, 3)."""
+    bt, by, bx = index
+    sx, sy, syaw = _steps(x_m, y_m, yaw_rad)
+    axes = []
+    for n, i, step, radius, wraps in (
+        (len(yaw_rad), bt, syaw, radius_rad, _wraps(yaw_rad)),
+        (len(y_m), by, sy, radius_m, False),
+        (len(x_m), bx, sx, radius_m, False),
+    ):
+        reach = _reach(radius, step)
+        if wraps:
+            reach = min(reach, (n - 1) // 2)
+            axes.append(np.arange(i - reach, i + reach + 1) % n)
+        else:
+            axes.append(np.arange(max(0, i - reach), min(n, i + reach + 1)))
+    it, iy, ix = axes
+    yaw, y, x = np.meshgrid(yaw_rad[it], y_m[iy], x_m[ix], indexing="ij")
+    dyaw = (yaw - yaw_rad[bt] + math.pi) % (2.0 * math.pi) - math.pi
+    dx, dy = x - x_m[bx], y - y_m[by]
+    inside = (np.hypot(dx, dy) <= radius_m + 1e-12) & (np.abs(dyaw) <= radius_rad + 1e-12)
+    offsets = np.stack([dx[inside], dy[inside], dyaw[inside]], axis=-1)
+    return (it, iy, ix), inside, offsets
+
+
+def best_pose_outside(
+    scores: np.ndarray,
+    index: tuple[int, int, int],
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    radius_m: float,
+    radius_rad: float,
+    *,
+    maxima: np.ndarray | None = None,
+) -> float:
+    """The best score outside the peak's neighbourhood (−inf if every cell is inside it).
+
+    ``maxima``: the maximum of each rotation's slice, if already known.
+    """
+    (it, iy, ix), inside, _ = _neighbourhood(index, x_m, y_m, yaw_rad, radius_m, radius_rad)
+    per_slice = np.array(_slice_maxima(scores) if maxima is None else maxima, dtype=np.float64)
+    for row, t in enumerate(it):
+        sub = scores[t].astype(np.float64)  # one slice: cheap
+        box = sub[np.ix_(iy, ix)]
+        box[inside[row]] = -np.inf
+        sub[np.ix_(iy, ix)] = box
+        per_slice[t] = sub.max()
+    return float(per_slice.max())
+
+
+def peak_covariance(
+    scores: np.ndarray,
+    index: tuple[int, int, int],
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    beta: float,
+    radius_m: float,
+    radius_rad: float,
+) -> np.ndarray:
+    """3×3 covariance (m, m, rad) of the PDF ∝ exp(β·score) over the peak's neighbourhood, as
+    ``PosePdf.covariance`` computes it: second moments about the neighbourhood's mean, plus the
+    variance of a uniform cell (step²/12) along each axis."""
+    (it, iy, ix), inside, offsets = _neighbourhood(index, x_m, y_m, yaw_rad, radius_m, radius_rad)
+    box = scores[np.ix_(it, iy, ix)].astype(np.float64)[inside]
+    w = np.exp(beta * (box - box.max()))
+    w /= w.sum()
+    centred = offsets - (w[:, None] * offsets).sum(axis=0)
+    cov = (w[:, None, None] * centred[:, :, None] * centred[:, None, :]).sum(axis=0)
+    cov += np.diag(np.square(_steps(x_m, y_m, yaw_rad))) / 12.0
+    return np.asarray(0.5 * (cov + cov.T))
+
+
+def refine_peak(scores: np.ndarray, index: tuple[int, int, int], yaw_wraps: bool) -> np.ndarray:
+    """Sub-cell offset (x, y, yaw, in lattice steps) of the score's maximum near ``index``.
+
+    A quadratic (cross terms included) is fitted by least squares to the 3×3×3 neighbourhood and
+    its vertex taken when it is a maximum; else each axis gets its own parabola through three
+    samples. Axes without a neighbour on both sides stay at 0; offsets are clipped to ±1 step.
+    """
+    shape = scores.shape  # (T, Y, X)
+    t0, y0, x0 = index
+    usable = []  # (pose axis, array axis)
+    for k, axis in ((0, 2), (1, 1), (2, 0)):
+        i, n = index[axis], shape[axis]
+        if (axis == 0 and yaw_wraps and n >= 3) or 0 < i < n - 1:
+            usable.append((k, axis))
+    step = np.zeros(3)
+    if not usable:
+        return step
+    grid = np.array(np.meshgrid(*[[-1, 0, 1]] * len(usable), indexing="ij")).reshape(
+        len(usable), -1
+    )
+    values = []
+    for column in grid.T:
+        cell = [t0, y0, x0]
+        for (_, axis), d in zip(usable, column, strict=True):
+            cell[axis] = (cell[axis] + int(d)) % shape[axis]
+        values.append(float(scores[cell[0], cell[1], cell[2]]))
+    f = np.array(values)
+    m = len(usable)
+    pairs = [(i, j) for i in range(m) for j in range(i, m)]
+    design = np.column_stack(
+        [np.ones(grid.shape[1]), *grid, *[grid[i] * grid[j] for i, j in pairs]]
+    )
+    coef = np.linalg.lstsq(design, f, rcond=None)[0]
+    g = coef[1 : 1 + m]
+    H = np.zeros((m, m))
+    for (i, j), c in zip(pairs, coef[1 + m :], strict=True):
+        H[i, j] += c if i != j else 2 * c
+        if i != j:
+            H[j, i] += c
+    if np.linalg.eigvalsh(H).max() < 0:
+        delta = -np.linalg.solve(H, g)
+    else:
+        delta = np.zeros(m)
+        centre = grid.shape[1] // 2
+        for r in range(m):
+            others = np.all(np.delete(grid, r, axis=0) == 0, axis=0)
+            fm = f[others & (grid[r] == -1)][0]
+            fp = f[others & (grid[r] == 1)][0]
+            curvature = fm - 2 * f[centre] + fp
+            if curvature < 0:
+                delta[r] = (fm - fp) / (2 * curvature)
+    for (k, _), d in zip(usable, delta, strict=True):
+        step[k] = float(np.clip(d, -1.0, 1.0))
+    return step
+
+
+# -- the search --------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class SearchResult:
+    """The exhaustive search's answer: pose of the local grid's frame in the global grid's frame.
+
+    ``scores`` and ``prob`` are float32 (T, Y, X) over ``yaw_rad`` × ``y_m`` × ``x_m``; ``prob``
+    ∝ exp(β·score) sums to 1. ``pose`` is the refined best pose (x_m, y_m, yaw_rad);
+    ``covariance`` (m, m, rad) and ``peak_ratio`` are those of ``pdf`` (``PosePdf``'s
+    definitions), computed on the scores.
+    """
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    yaw_rad: np.ndarray
+    scores: np.ndarray
+    prob: np.ndarray
+    beta: float
+    best_index: tuple[int, int, int]
+    best_score: float
+    pose: np.ndarray
+    covariance: np.ndarray
+    peak_ratio: float
+    seconds: float
+
+    @cached_property
+    def pdf(self) -> PosePdf:
+        """The whole normalised PDF as a ``PosePdf`` (a float64 copy, built on first use)."""
+        return PosePdf(self.x_m, self.y_m, self.yaw_rad, self.prob)
+
+    @property
+    def lattice_pose(self) -> np.ndarray:
+        t, y, x = self.best_index
+        return np.array([self.x_m[x], self.y_m[y], self.yaw_rad[t]])
+
+    def is_dominant(self, dominance_ratio: float) -> bool:
+        return self.peak_ratio >= dominance_ratio
+
+    def on_window_edge(self) -> tuple[bool, bool]:
+        """Whether the best cell lies on the first or last column (x) / row (y) of the lattice."""
+        _, y, x = self.best_index
+        return x in (0, len(self.x_m) - 1), y in (0, len(self.y_m) - 1)
+
+
+@njit(cache=True, parallel=True)
+def _slice_maxima(scores: np.ndarray) -> np.ndarray:
+    """(T,) float64 maximum of each rotation's slice."""
+    out = np.empty(scores.shape[0])
+    for t in prange(scores.shape[0]):
+        out[t] = scores[t].max()
+    return out
+
+
+@njit(cache=True, parallel=True, fastmath=True)
+def _exp_shifted(scores: np.ndarray, beta: float, top: float, out: np.ndarray) -> float:
+    """out = exp(β·(score − top)) in float32; returns the sum (float64)."""
+    sums = np.zeros(scores.shape[0])
+    b = np.float32(beta)
+    shift = np.float32(top)
+    for t in prange(scores.shape[0]):
+        acc = 0.0
+        for i in range(scores.shape[1]):
+            for j in range(scores.shape[2]):
+                v = np.exp(b * (scores[t, i, j] - shift))
+                out[t, i, j] = v
+                acc += v
+        sums[t] = acc
+    return float(sums.sum())
+
+
+@njit(cache=True, parallel=True)
+def _scale(values: np.ndarray, factor: float) -> None:
+    f = np.float32(factor)
+    for t in prange(values.shape[0]):
+        values[t] *= f
+
+
+def normalise(scores: np.ndarray, beta: float, top: float | None = None) -> np.ndarray:
+    """float32 probabilities ∝ exp(β·(score − max)), summing to 1."""
+    scores = np.ascontiguousarray(scores, dtype=np.float32)
+    top = float(scores.max()) if top is None else top
+    prob = np.empty_like(scores)
+    total = _exp_shifted(scores, beta, top, prob)
+    _scale(prob, 1.0 / total)
+    return prob
+
+
+def result_from_scores(
+    scores: np.ndarray,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    params: SearchParams,
+    started: float,
+) -> SearchResult:
+    """Best pose, refinement, PDF, covariance and dominance of a score lattice (T, Y, X)."""
+    maxima = _slice_maxima(scores)
+    t = int(np.argmax(maxima))
+    y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
+    best = float(scores[t, y, x])
+    delta = refine_peak(scores, (t, y, x), _wraps(yaw_rad))
+    steps = np.array(_steps(x_m, y_m, yaw_rad))
+    pose = np.array([x_m[x], y_m[y], yaw_rad[t]]) + delta * steps
+    pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
+    radii = (params.peak_radius_m, params.peak_radius_rad)
+    elsewhere = best_pose_outside(scores, (t, y, x), x_m, y_m, yaw_rad, *radii, maxima=maxima)
+    with np.errstate(over="ignore"):
+        ratio = float(np.exp(params.beta * (best - elsewhere)))
+    covariance = peak_covariance(scores, (t, y, x), x_m, y_m, yaw_rad, params.beta, *radii)
+    prob = normalise(scores, params.beta, best)
+    return SearchResult(
+        x_m=x_m,
+        y_m=y_m,
+        yaw_rad=yaw_rad,
+        scores=scores,
+        prob=prob,
+        beta=params.beta,
+        best_index=(t, y, x),
+        best_score=best,
+        pose=pose,
+        covariance=covariance,
+        peak_ratio=ratio,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def search(
+    local: Band,
+    global_: Band,
+    params: SearchParams,
+    window_m: tuple[float, float, float, float] | None = None,
+) -> SearchResult:
+    """Score every pose (x, y, θ) of the window (default: the whole global grid) at the grids'
+    resolution and ``params.angular_resolution_rad``; the whole normalised PDF and its peak.
+
+    The pose is that of ``local``'s frame (the frame its ``lower_xy`` is given in) in
+    ``global_``'s frame. EstimationError on an empty scan or map, mismatched resolutions or a
+    window outside the map.
+    """
+    started = time.perf_counter()
+    x_m, y_m, _ = pose_lattice(local, global_, window_m)
+    yaw_rad = yaw_lattice(params.angular_resolution_rad)
+    scores = correlate_all(
+        local, global_, x_m, y_m, yaw_rad, params.free_weight, workers=params.thread_count()
+    )
+    return result_from_scores(scores, x_m, y_m, yaw_rad, params, started)
+
+
+# -- windowed search around an estimate --------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class WindowStep:
+    """One window of a windowed search: its side, what it found, and why it did (not) stop."""
+
+    side_m: float
+    window_m: tuple[float, float, float, float]
+    pose: np.ndarray
+    peak_ratio: float
+    on_edge: bool  # the best cell lies on a border of the window that is not the map's border
+    covers_map: bool
+    seconds: float
+
+
+@dataclass(frozen=True)
+class WindowedResult:
+    """The last window's search, and every window tried (smallest first)."""
+
+    result: SearchResult
+    steps: tuple[WindowStep, ...]
+    dominance_ratio: float
+
+    @property
+    def dominant(self) -> bool:
+        """Whether the search stopped on a dominant peak inside its window."""
+        last = self.steps[-1]
+        return not last.on_edge and last.peak_ratio >= self.dominance_ratio
+
+
+def windowed_search(
+    local: Band,
+    global_: Band,
+    params: SearchParams,
+    prior_xy: tuple[float, float] | np.ndarray,
+    window_m: float,
+    max_window_m: float,
+) -> WindowedResult:
+    """Search a square window of side ``window_m`` centred on the prior position, then windows
+    twice as wide, until the peak is dominant (``peak_ratio ≥ params.dominance_ratio``, with the
+    best cell off the window's inner borders), the window covers the whole map, or its side
+    reaches ``max_window_m``. The batch form of the paper's spiral search out from an estimate:
+    every rotation is searched in each window, and the answer is the last window's whole PDF.
+    """
+    px, py = (float(v) for v in prior_xy)
+    if not (math.isfinite(px) and math.isfinite(py)):
+        raise EstimationError(f"prior position must be finite, got ({px}, {py})")
+    if not (0 < window_m <= max_window_m) or not math.isfinite(max_window_m):
+        raise EstimationError(
+            f"need 0 < window_m <= max_window_m, got {window_m} and {max_window_m}"
+        )
+    mx0, mx1, my0, my1 = global_.extent()
+    steps: list[WindowStep] = []
+    side = float(window_m)
+    while True:
+        window = (px - side / 2, px + side / 2, py - side / 2, py + side / 2)
+        result = search(local, global_, params, window)
+        covers = window[0] <= mx0 and window[1] >= mx1 and window[2] <= my0 and window[3] >= my1
+        _, by, bx = result.best_index
+        r = float(global_.resolution_m)
+        inner = (
+            (bx == 0 and result.x_m[0] - r >= mx0)
+            or (bx == len(result.x_m) - 1 and result.x_m[-1] + r < mx1)
+            or (by == 0 and result.y_m[0] - r >= my0)
+            or (by == len(result.y_m) - 1 and result.y_m[-1] + r < my1)
+        )
+        steps.append(
+            WindowStep(
+                side_m=side,
+                window_m=window,
+                pose=result.pose,
+                peak_ratio=result.peak_ratio,
+                on_edge=bool(inner),
+                covers_map=bool(covers),
+                seconds=result.seconds,
+            )
+        )
+        dominant = result.peak_ratio >= params.dominance_ratio and not inner
+        if dominant or covers or side >= max_window_m:
+            return WindowedResult(result, tuple(steps), params.dominance_ratio)
+        side = min(2.0 * side, float(max_window_m))
