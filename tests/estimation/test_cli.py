@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -151,14 +152,23 @@ def test_world_list_names_the_builtins() -> None:
     assert [line.split()[0] for line in stdout.strip().splitlines()] == sorted(BUILTIN)
 
 
-def test_demo_writes_its_outputs(tmp_path: Path) -> None:
+def test_demo_runs_the_default_mission(tmp_path: Path) -> None:
     out = tmp_path / "demo"
     code, stdout, stderr = run("demo", "--out", str(out))
     assert code == 0, stderr
-    for name in ("view.ply", "world_top.png", "view_range.png", "world.yaml", "config.yaml"):
+    for name in ("events.jsonl", "robots/a/lms.cap", "result/poses/a.tum", "result/map.npz",
+                 "result/map.ply", "result/ceiling.pgm", "result/ceiling.yaml", "result/graph.g2o",
+                 "result/report.md", "result/metrics.json", "result/config.yaml",
+                 "result/figures/ceiling_trajectories.png", "result/figures/map_cubes.png",
+                 "result/view/world_top.png", "result/view/view.ply"):  # fmt: skip
         assert (out / name).is_file(), name
-        assert f"wrote {out / name}" in stdout
-    assert "returns on" in stdout
+    assert "coopmap demo: essex_lab, 2 robots" in stdout
+    metrics = json.loads((out / "result" / "metrics.json").read_text())
+    for robot in ("a", "b"):
+        assert metrics["robots"][robot]["ate_m"] < 0.05
+        assert metrics["robots"][robot]["ate_deg"] < 0.5
+    assert metrics["map"]["precision"] > 0.9
+    assert metrics["map"]["recall"] > 0.9
 
 
 @pytest.mark.skipif(not COOPMAP.exists(), reason="console script not installed beside python")

@@ -1,0 +1,106 @@
+"""The batch pipeline and the evaluation on a small simulated mission, and their bad inputs."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from estimation.cli import app
+from estimation.config import ConfigError
+from estimation.evaluate import evaluate
+from estimation.pipeline import load_dataset, run_batch
+from estimation.simulate import run_simulation
+from estimation.trajio import read_g2o, read_tum
+from mapping.npz import load_map
+from sensors.errors import SensorError
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("mission") / "essex"
+    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+    return out
+
+
+@pytest.fixture(scope="module")
+def result(dataset: Path) -> Path:
+    run_batch(dataset)
+    return dataset / "result"
+
+
+def test_batch_writes_the_result_directory(result: Path) -> None:
+    report = json.loads((result / "report.json").read_text())
+    assert report["observations"] >= 4
+    assert report["missing_sweeps"] == []
+    assert report["robots"]["a"]["checksum_failures"] == 0
+    stamps, poses = read_tum(result / "poses" / "a.tum")
+    assert stamps[0] == 0.0
+    np.testing.assert_allclose(poses[0], [2.0, 3.5, np.radians(20)], atol=1e-3)  # the gauge
+    graph = read_g2o(result / "graph.g2o")
+    assert graph.num_poses == sum(r["poses"] for r in report["robots"].values())
+    assert len(graph.fixed) == 1
+    grid = load_map(result / "map.npz")
+    assert grid.known_count() > 100_000
+    assert (result / "ceiling.pgm").read_bytes()[:2] == b"P5"
+    assert "| robot | poses |" in (result / "report.md").read_text()
+
+
+def test_evaluation_meets_the_targets(dataset: Path, result: Path) -> None:
+    metrics = evaluate(dataset)
+    for robot in ("a", "b"):
+        assert metrics["robots"][robot]["ate_m"] < 0.05
+        assert metrics["robots"][robot]["ate_deg"] < 0.5
+    assert metrics["mutual"]["median_m"] < 0.02
+    assert metrics["map"]["precision"] >= 0.9
+    assert metrics["map"]["recall"] >= 0.9
+    assert json.loads((result / "metrics.json").read_text()) == json.loads(json.dumps(metrics))
+
+
+def test_garbage_in_a_capture_is_counted_not_fatal(dataset: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result"))
+    capture = copy / "robots" / "b" / "lms.cap"
+    data = bytearray(capture.read_bytes())
+    rng = np.random.default_rng(0)
+    start = len(data) // 2
+    data[start : start + 3000] = rng.integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    capture.write_bytes(bytes(data))
+    output = run_batch(copy)
+    assert output.report["robots"]["b"]["bytes_skipped"] > 0
+    assert output.report["observations"] >= 3
+
+
+def test_bad_datasets_are_clear_errors(dataset: Path, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not a coopmap dataset"):
+        load_dataset(tmp_path)
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result"))
+    (copy / "robots" / "a" / "lms.cap").unlink()
+    with pytest.raises(SensorError, match=r"lms\.cap: no such file"):
+        run_batch(copy)
+    (copy / "events.jsonl").write_text('{"event": "dwell"}\n')
+    with pytest.raises(ConfigError, match=r"events\.jsonl:1: an event needs 'event' and 't_s'"):
+        load_dataset(copy)
+    result = CliRunner().invoke(app, ["batch", str(tmp_path / "nothing")])
+    assert result.exit_code == 2
+    assert "not a coopmap dataset" in result.stderr
+    result = CliRunner().invoke(app, ["evaluate", str(copy)])
+    assert result.exit_code == 2
+    assert "no result here" in result.stderr
+
+
+def test_failed_batch_keeps_the_earlier_result(dataset: Path, result: Path, tmp_path: Path) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    before = (copy / "result" / "report.json").read_text()
+    (copy / "robots" / "b" / "lms.cap").write_bytes(b"COOPMAP-LMSCAP 1\n{}\n")
+    with pytest.raises(SensorError, match="no measured values"):
+        run_batch(copy)
+    assert (copy / "result" / "report.json").read_text() == before
