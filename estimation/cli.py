@@ -219,6 +219,35 @@ def batch(
 
 @app.command()
 @cli_errors
+def isam(
+    dataset: Annotated[Path, typer.Argument(help="A dataset folder (coopmap simulate).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
+    resume: Annotated[
+        bool, typer.Option(help="Continue from the checkpoint of a cut-short run.")
+    ] = False,
+    config: ConfigOption = None,
+) -> None:
+    """Incremental iSAM2 over the same data, event by event, with checkpoints."""
+    from estimation.pipeline import run_isam
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    err = _console(stderr=True)
+    with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
+        output = run_isam(dataset, out, overrides=overrides, resume=resume, progress=status.update)
+    assert output is not None
+    r = output.report
+    _console().print(
+        f"coopmap isam: {r['isam2']['events']} events"
+        + (" (resumed)" if resume else "")
+        + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
+        f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
+    )
+    _console().print(f"  wrote {output.out_dir}/")
+
+
+@app.command()
+@cli_errors
 def evaluate(
     dataset: Annotated[
         Path, typer.Argument(help="A simulated dataset folder (with ground truth).")
@@ -510,6 +539,43 @@ def bench_scan(json_out: JsonOption = False, config: ConfigOption = None) -> Non
         f"(median of {result['repeats']}, max {result['milliseconds_max']:.1f} ms); the scanner "
         f"takes {result['sweep_seconds']:.1f} s: {result['ratio']:,.0f}× real time"
     )
+
+
+@bench_app.command("graph")
+@cli_errors
+def bench_graph(
+    json_out: JsonOption = False,
+    config: ConfigOption = None,
+    case: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="Run only this case (repeatable): leapfrog_5000, "
+            "leapfrog_5000_loops, intel, ais2klinik."
+        ),
+    ] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="The shared data folder (default: ../shared/data).")
+    ] = None,
+) -> None:
+    """Pose graph: batch and iSAM2 per-event times on synthetic and real graphs."""
+    import json
+
+    from estimation.bench_graph import CASES, DATA_DIR, format_report, run_bench
+    from estimation.pipeline import graph_settings
+
+    cfg = _config(config)
+    err = _console(stderr=True)
+    with err.status("optimizing pose graphs…", spinner="dots") as status:
+        report = run_bench(
+            case or CASES,
+            graph_settings(cfg),
+            robust=cfg.graph.robust,
+            relinearize_threshold=cfg.graph.isam2_relinearize_threshold,
+            relinearize_skip=cfg.graph.isam2_relinearize_skip,
+            data_dir=data or DATA_DIR,
+            progress=lambda name: status.update(f"optimizing {name}…"),
+        )
+    typer.echo(json.dumps(report) if json_out else format_report(report))
 
 
 def _telegram_line(record: dict[str, Any]) -> str:

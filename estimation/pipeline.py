@@ -34,7 +34,6 @@ from estimation.smoother import optimize_batch
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams, OccupancyGrid
-from sensors.atomic import write_text_atomic
 from sensors.beacon import BeaconDetection, detect_beacons
 from sensors.errors import SensorError
 from sensors.frames import pose2_matrix
@@ -394,59 +393,68 @@ def scanner_matrix(pose: np.ndarray, config: Config) -> np.ndarray:
     )
 
 
-def run_batch(
-    dataset_dir: Path | str,
-    out_dir: Path | str | None = None,
-    *,
-    overrides: dict[str, Any] | None = None,
-    progress: Progress | None = None,
-) -> BatchOutput:
-    """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results."""
-    from estimation.results import write_results
-
+def _prepare(
+    dataset_dir: Path | str, overrides: dict[str, Any] | None, progress: Progress | None
+) -> tuple[
+    Dataset,
+    dict[str, RobotStream],
+    list[Event],
+    list[Sweep],
+    dict[str, Any],
+    GraphBuilder,
+    dict[str, float],
+]:
     timings: dict[str, float] = {}
     clock = time.perf_counter()
     dataset = load_dataset(dataset_dir, overrides)
-    config = dataset.config
-    out = Path(out_dir) if out_dir is not None else dataset.path / "result"
     streams: dict[str, RobotStream] = {}
     for robot in dataset.robots:
         if progress is not None:
             progress(f"decoding robot {robot}")
         capture = dataset.path / "robots" / robot / "lms.cap"
-        streams[robot] = decode_robot(capture, config.scanner.measuring_mode)
+        streams[robot] = decode_robot(capture, dataset.config.scanner.measuring_mode)
     timings["decode"] = time.perf_counter() - clock
-
     clock = time.perf_counter()
-    _, sweeps, counts, builder = build_events(dataset, streams, progress)
+    events, sweeps, counts, builder = build_events(dataset, streams, progress)
     timings["sweeps_and_beacons"] = time.perf_counter() - clock
+    return dataset, streams, events, sweeps, counts, builder, timings
 
-    clock = time.perf_counter()
-    gauge = pose_key(dataset.robots[0], 0)
-    keep = _connected(builder.factors, gauge)
-    factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
-    initial = {k: v for k, v in builder.initial_values().items() if k in keep}
-    dropped = sorted(set(builder.initial_values()) - keep)
-    if len(initial) < 1:
-        raise EstimationError(f"{dataset.path}: no pose is connected to the gauge")
-    result = optimize_batch(factors, initial, robust=config.graph.robust)
-    timings["optimize"] = time.perf_counter() - clock
 
+def _finish(
+    dataset: Dataset,
+    streams: dict[str, RobotStream],
+    sweeps: list[Sweep],
+    counts: dict[str, Any],
+    builder: GraphBuilder,
+    factors: list[FactorSpec],
+    estimate: dict[int, np.ndarray],
+    inliers: np.ndarray,
+    dropped: list[int],
+    timings: dict[str, float],
+    out: Path,
+    extra: dict[str, Any],
+) -> BatchOutput:
+    """Re-fuse every sweep at its optimized pose, then write the result directory."""
+    from estimation.results import write_results
+
+    config = dataset.config
     clock = time.perf_counter()
     poses: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
-    for key, pose in result.estimate.items():
+    for key, pose in estimate.items():
         robot, index = split_key(key)
         poses[robot][index] = pose
     used = [s for s in sweeps if s.index in poses[s.robot]]
-    grid = fuse_scans(
-        [MapScan(s.scan.points_scanner) for s in used],
+    transforms = (
         np.stack([scanner_matrix(poses[s.robot][s.index], config) for s in used])
         if used
-        else np.zeros((0, 4, 4)),
+        else np.zeros((0, 4, 4))
+    )
+    grid = fuse_scans(
+        [MapScan(s.scan.points_scanner) for s in used],
+        transforms,
         GridParams(**config.grid.model_dump()),
     )
     timings["fusion"] = time.perf_counter() - clock
-
     stamps = {r: dataset.stop_times(r) for r in dataset.robots}
     report = {
         "coopmap": __version__,
@@ -467,19 +475,111 @@ def run_batch(
         "missing_sweeps": counts["missing_sweeps"],
         "observations": counts["observations"],
         "unseen_pairs": counts["unseen"],
-        "gate_rejections": [r.reason for r in builder.rejections] if builder.rejections else [],
+        "gate_rejections": [r.reason for r in builder.rejections],
         "factors": len(factors),
-        "outlier_factors": [factors[i].describe() for i in result.outliers],
+        "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
         "dropped_poses": [f"{split_key(k)[0]}{split_key(k)[1]}" for k in dropped],
-        "graph_error": result.error,
         "timings_s": timings,
+        **extra,
     }
-    output = BatchOutput(out, poses, stamps, sweeps, factors, result.inliers, grid, report)
+    output = BatchOutput(out, poses, stamps, sweeps, factors, inliers, grid, report)
     clock = time.perf_counter()
+    timings["total"] = sum(timings.values())
     write_results(output, config)
     timings["write"] = time.perf_counter() - clock
-    timings["total"] = sum(v for k, v in timings.items() if k != "total")
-    write_text_atomic(
-        out / "report.json", json.dumps(output.report, indent=1, default=float) + "\n"
+    return output
+
+
+def run_batch(
+    dataset_dir: Path | str,
+    out_dir: Path | str | None = None,
+    *,
+    overrides: dict[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> BatchOutput:
+    """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results."""
+    dataset, streams, _, sweeps, counts, builder, timings = _prepare(
+        dataset_dir, overrides, progress
     )
+    config = dataset.config
+    out = Path(out_dir) if out_dir is not None else dataset.path / "result"
+    clock = time.perf_counter()
+    gauge = pose_key(dataset.robots[0], 0)
+    keep = _connected(builder.factors, gauge)
+    factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
+    initial = {k: v for k, v in builder.initial_values().items() if k in keep}
+    dropped = sorted(set(builder.initial_values()) - keep)
+    if not initial:
+        raise EstimationError(f"{dataset.path}: no pose is connected to the gauge")
+    if progress is not None:
+        progress("optimizing the pose graph")
+    result = optimize_batch(factors, initial, robust=config.graph.robust)
+    timings["optimize"] = time.perf_counter() - clock
+    extra = {"graph_error": result.error}
+    return _finish(
+        dataset, streams, sweeps, counts, builder, factors, result.estimate, result.inliers,
+        dropped, timings, out, extra,
+    )  # fmt: skip
+
+
+def run_isam(
+    dataset_dir: Path | str,
+    out_dir: Path | str | None = None,
+    *,
+    overrides: dict[str, Any] | None = None,
+    resume: bool = False,
+    checkpoint_every: int = 5,
+    stop_after: int | None = None,
+    progress: Progress | None = None,
+) -> BatchOutput | None:
+    """The same events fed one by one to iSAM2, checkpointing as it goes.
+
+    ``resume`` continues from the checkpoint of an earlier run that was cut short.
+    ``stop_after`` ends the run after that many events without writing results (as a kill would).
+    """
+    from estimation.smoother import IncrementalSmoother
+
+    dataset, streams, events, sweeps, counts, _, timings = _prepare(
+        dataset_dir, overrides, progress
+    )
+    config = dataset.config
+    out = Path(out_dir) if out_dir is not None else dataset.path / "result_isam"
+    checkpoint = out.with_name(f".{out.name}.checkpoint.npz")
+    robust = config.graph.robust
+    kernel: Any = robust if robust in ("huber", "cauchy") else "none"
+    options = {
+        "settings": graph_settings(config),
+        "relinearize_threshold": config.graph.isam2_relinearize_threshold,
+        "relinearize_skip": config.graph.isam2_relinearize_skip,
+        "kernel": kernel,
+    }
+    clock = time.perf_counter()
+    if resume:
+        if not checkpoint.is_file():
+            raise EstimationError(f"{checkpoint}: no checkpoint to resume from")
+        smoother = IncrementalSmoother.restore(checkpoint, iter(events), **options)
+        remaining = events[smoother.events :]
+    else:
+        smoother = IncrementalSmoother(**options)
+        remaining = events
+    for event in remaining:
+        smoother.add(event)
+        if smoother.events % checkpoint_every == 0:
+            smoother.save_checkpoint(checkpoint)
+        if stop_after is not None and smoother.events >= stop_after:
+            smoother.save_checkpoint(checkpoint)
+            return None
+    timings["optimize"] = time.perf_counter() - clock
+    estimate = smoother.estimate()
+    builder = smoother.builder
+    factors = list(builder.factors)
+    update_ms = np.array(smoother.update_seconds) * 1e3
+    output = _finish(
+        dataset, streams, sweeps, counts, builder, factors, estimate,
+        np.ones(len(factors), dtype=bool), [], timings, out,
+        {"isam2": {"events": smoother.events, "resumed": resume,
+                   "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
+                   "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0}},
+    )  # fmt: skip
+    checkpoint.unlink(missing_ok=True)
     return output

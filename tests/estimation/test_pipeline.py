@@ -104,3 +104,28 @@ def test_failed_batch_keeps_the_earlier_result(dataset: Path, result: Path, tmp_
     with pytest.raises(SensorError, match="no measured values"):
         run_batch(copy)
     assert (copy / "result" / "report.json").read_text() == before
+
+
+def test_isam_matches_batch_and_resumes_after_a_kill(
+    dataset: Path, result: Path, tmp_path: Path
+) -> None:
+    from estimation.pipeline import run_isam
+
+    whole = run_isam(dataset, tmp_path / "isam")
+    assert whole is not None
+    batch_poses = {r: np.loadtxt(result / "poses" / f"{r}.tum", ndmin=2) for r in ("a", "b")}
+    for robot, poses in whole.poses.items():
+        for k, (index, pose) in enumerate(sorted(poses.items())):
+            del index
+            np.testing.assert_allclose(pose[:2], batch_poses[robot][k, 1:3], atol=0.01)
+    assert run_isam(dataset, tmp_path / "cut", stop_after=6) is None  # killed after 6 events
+    assert (tmp_path / ".cut.checkpoint.npz").is_file()
+    resumed = run_isam(dataset, tmp_path / "cut", resume=True)
+    assert resumed is not None
+    assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
+    for robot, poses in whole.poses.items():
+        for index, pose in poses.items():
+            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-4)  # 0.1 mm
+    assert not (tmp_path / ".cut.checkpoint.npz").exists()
+    with pytest.raises(Exception, match="no checkpoint to resume from"):
+        run_isam(dataset, tmp_path / "never", resume=True)
