@@ -29,6 +29,7 @@ from estimation.errors import EstimationError
 from estimation.events import Event, Move, Observe, Start
 from estimation.graph import FactorSpec, GraphBuilder, GraphSettings
 from estimation.keys import pose_key, split_key
+from estimation.loopclosure import loop_closures, records_json, relocalize
 from estimation.rig import beacon_parameters, mirror_geometry
 from estimation.smoother import optimize_batch
 from mapping.fusion import Scan as MapScan
@@ -369,6 +370,13 @@ def _flush_pending(
             del pending[robot]
 
 
+def _mapping_sweeps(dataset: Dataset, sweeps: list[Sweep]) -> list[Sweep]:
+    """The sweeps of the mapping: not those taken after the world changed."""
+    after = {n for n, e in enumerate(dataset.events)
+             if e["event"] == "dwell" and e.get("phase") == "relocalize"}  # fmt: skip
+    return [s for s in sweeps if s.dwell not in after]
+
+
 def _connected(factors: list[FactorSpec], root: int) -> set[int]:
     parent: dict[int, int] = {}
 
@@ -443,7 +451,7 @@ def _finish(
     for key, pose in estimate.items():
         robot, index = split_key(key)
         poses[robot][index] = pose
-    used = [s for s in sweeps if s.index in poses[s.robot]]
+    used = [s for s in _mapping_sweeps(dataset, sweeps) if s.index in poses[s.robot]]
     transforms = (
         np.stack([scanner_matrix(poses[s.robot][s.index], config) for s in used])
         if used
@@ -515,7 +523,29 @@ def run_batch(
         progress("optimizing the pose graph")
     result = optimize_batch(factors, initial, robust=config.graph.robust)
     timings["optimize"] = time.perf_counter() - clock
-    extra = {"graph_error": result.error}
+    clock = time.perf_counter()
+    if progress is not None:
+        progress("global localization: station maps against older ones")
+    closures, records = loop_closures(dataset, _mapping_sweeps(dataset, sweeps), result.estimate)
+    if closures:
+        for event in closures:
+            builder.add(event)
+        keep = _connected(builder.factors, gauge)
+        factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
+        initial = {
+            k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
+        }
+        result = optimize_batch(factors, initial, robust=config.graph.robust)
+    relocalized = relocalize(dataset, sweeps, result.estimate)
+    timings["search"] = time.perf_counter() - clock
+    extra = {
+        "graph_error": result.error,
+        "global_localization": {
+            "searches": records_json(records),
+            "factors": len(closures),
+            "relocalization": records_json(relocalized),
+        },
+    }
     return _finish(
         dataset, streams, sweeps, counts, builder, factors, result.estimate, result.inliers,
         dropped, timings, out, extra,
@@ -570,14 +600,24 @@ def run_isam(
             smoother.save_checkpoint(checkpoint)
             return None
     timings["optimize"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    closures, records = loop_closures(
+        dataset, _mapping_sweeps(dataset, sweeps), smoother.estimate()
+    )
+    for event in closures:
+        smoother.add(event)
     estimate = smoother.estimate()
+    relocalized = relocalize(dataset, sweeps, estimate)
+    timings["search"] = time.perf_counter() - clock
     builder = smoother.builder
     factors = list(builder.factors)
     update_ms = np.array(smoother.update_seconds) * 1e3
     output = _finish(
         dataset, streams, sweeps, counts, builder, factors, estimate,
         np.ones(len(factors), dtype=bool), [], timings, out,
-        {"isam2": {"events": smoother.events, "resumed": resume,
+        {"global_localization": {"searches": records_json(records), "factors": len(closures),
+                                 "relocalization": records_json(relocalized)},
+         "isam2": {"events": smoother.events, "resumed": resume,
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
                    "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0}},
     )  # fmt: skip
