@@ -148,7 +148,8 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
 
     OccupancyGrid(params).integrate_scan(case.points[:10], case.origin)  # load compiled kernels
     points = np.ascontiguousarray(case.points, dtype=np.float64)
-    ours, peer = [], []
+    ours: list[float] = []
+    peer: list[float] = []
     grid = OccupancyGrid(params)
     tree: Any = None
     # At least `repeats` rounds, and more (up to 5×) while coopmap's share is under 0.2 s, so

@@ -480,9 +480,9 @@ def _trace_rays(
 
     Amanatides–Woo traversal, with the number of steps per axis fixed in advance by the two end
     cells, so the walk ends exactly in the end cell whatever the rounding. Ties (a ray through
-    an edge or corner) step x before y before z, as OctoMap does. Rays within the cube step
-    through its Morton-ordered bitmap and collect the cells not yet seen in ``fresh``, which is
-    applied in batches.
+    an edge or corner) step z before y before x, as OctoMap's comparisons do. Rays within
+    the cube step through its Morton-ordered bitmap and collect the cells not yet seen in
+    ``fresh``, which is applied in batches.
     """
     inf = math.inf
     ox, oy, oz = o[0], o[1], o[2]
@@ -830,7 +830,7 @@ def ray_cells(start: np.ndarray, end: np.ndarray, include_end: bool) -> np.ndarr
         tdz = 1.0 / abs(end[2] - start[2])
         tmz = ((iz + 1 if sz > 0 else iz) - start[2]) / (end[2] - start[2])
     for s in range(1, total + 1):
-        # Ties: x before y before z (OctoMap's order).
+        # Ties: z before y before x (OctoMap's comparisons).
         axis = (0 if tmx < tmz else 2) if tmx < tmy else (1 if tmy < tmz else 2)
         if axis == 0:
             ix += sx

@@ -344,7 +344,9 @@ class OccupancyGrid:
         inside = (evidence > 0) & (evidence < 1)
         if not inside.all():
             bad = int(np.flatnonzero(~inside)[0])
-            raise MapError(f"evidence must lie in (0, 1), got {evidence[bad]!r} at index {bad}")
+            raise MapError(
+                f"evidence must lie in (0, 1), got {float(evidence[bad])} at index {bad}"
+            )
         self._add(cells, logodds(evidence))
 
     def merge(self, other: OccupancyGrid) -> None:
@@ -403,16 +405,20 @@ class OccupancyGrid:
         blocks that hold them).
         """
         n, bs = self.block_count, self.params.block_size_cells
-        rows = np.arange(n)
+        coords, logodds, known_bits = (
+            self._store.coords[:n],
+            self._store.logodds[:n],
+            self._store.known[:n],
+        )
         if z_range is not None:
             k_first, k_last = z_range
-            bz = self._store.coords[:n, 2]
-            rows = rows[(bz * bs <= k_last) & (bz * bs + bs - 1 >= k_first)]
-        bits = np.unpackbits(self._store.known[rows], axis=1, bitorder="little")
-        known = bits[:, : bs**3].astype(bool)
+            bz = coords[:, 2]
+            rows = np.flatnonzero((bz * bs <= k_last) & (bz * bs + bs - 1 >= k_first))
+            coords, logodds, known_bits = coords[rows], logodds[rows], known_bits[rows]
+        known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].view(bool)
         block, flat = np.nonzero(known)
-        found = self._store.coords[rows[block]] * bs + self._local_of_flat()[flat]
-        values = self._store.logodds[rows][known]
+        found = coords[block] * bs + self._local_of_flat()[flat]
+        values = logodds[block, flat]
         if z_range is not None:
             keep = (found[:, 2] >= z_range[0]) & (found[:, 2] <= z_range[1])
             found, values = found[keep], values[keep]
@@ -497,7 +503,7 @@ class OccupancyGrid:
         n = len(coords)
         store.coords[:n] = coords
         order = grid._flat_of_local().reshape(-1)
-        flat_values = values.reshape(n, -1)
+        flat_values = values.reshape(n, bs**3)
         known = ~np.isnan(flat_values)
         store.logodds[:n, order] = np.where(
             known, np.clip(flat_values, params.logodds_min, params.logodds_max), 0.0
@@ -531,7 +537,7 @@ class OccupancyGrid:
         """(n, bs³) bool: which cells of the first n blocks are known, in storage order."""
         cells = self.params.block_size_cells**3
         bits = np.unpackbits(self._store.known[:n], axis=1, bitorder="little")
-        return np.asarray(bits[:, :cells].astype(bool))
+        return np.asarray(bits[:, :cells].view(bool))
 
     def _flat_of_local(self) -> np.ndarray:
         """(bs, bs, bs) storage offset of each in-block cell (x, y, z)."""

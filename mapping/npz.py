@@ -65,7 +65,7 @@ def save_map(path: Path | str, grid: OccupancyGrid) -> Path:
     path = Path(path)
     params = grid.params
     coords, values = grid.blocks()
-    flat = values.reshape(len(coords), -1)
+    flat = values.reshape(len(coords), params.block_size_cells**3)
     known = ~np.isnan(flat)
     arrays: dict[str, Any] = {
         "format": np.array(MAP_FORMAT),

@@ -189,7 +189,7 @@ def _parse_header(data: bytes, source: str) -> tuple[str, int, float, int]:
         if keyword == "data":
             break
         if len(words) < 2:
-            raise MapError(f"{source}: header line {line!r} has no value")
+            raise MapError(f"{source}: malformed header line {line!r} (no value)")
         try:
             if keyword == "id":
                 tree_id = words[1]

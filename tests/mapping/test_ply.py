@@ -97,3 +97,29 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path) -> None:
     with pytest.raises(PlyError):
         write_ply(path, np.zeros((3, 3)), colors=np.zeros((2, 3)))
     assert path.read_bytes() == b"previous"
+
+
+def test_occupied_voxels_export_with_their_probability(tmp_path: Path) -> None:
+    from mapping.grid import GridParams, OccupancyGrid
+    from mapping.ply import write_grid_ply
+
+    params = GridParams()
+    grid = OccupancyGrid(params)
+    sensor = np.array([0.05, 0.05, 0.05])
+    grid.integrate_scan(np.array([[1.05, 0.05, 0.05], [0.05, 2.05, 0.05]]), sensor)
+    grid.integrate_scan(np.array([[1.05, 0.05, 0.05]]), sensor)
+    path = tmp_path / "map.ply"
+    assert write_grid_ply(path, grid) == 2
+    cloud = read_ply(path)
+    order = np.argsort(cloud["x"])
+    np.testing.assert_allclose(cloud["x"][order], [0.05, 1.05], atol=1e-6)
+    np.testing.assert_allclose(cloud["y"][order], [2.05, 0.05], atol=1e-6)
+    p_twice = 1 / (1 + (0.3 / 0.7) ** 2)
+    np.testing.assert_allclose(cloud["probability"][order], [0.7, p_twice], atol=1e-6)
+    assert write_grid_ply(tmp_path / "sure.ply", grid, threshold=0.8) == 1
+
+
+def test_ply_errors_are_map_errors() -> None:
+    from mapping.errors import MapError
+
+    assert issubclass(PlyError, MapError)

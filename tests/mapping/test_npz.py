@@ -1,0 +1,145 @@
+"""map.npz: exact round trips, and clear errors that never clobber a map on disk."""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapping import npz
+from mapping.errors import MapError
+from mapping.grid import GridParams, OccupancyGrid
+from mapping.npz import load_map, save_map
+from tests.mapping.conftest import room_scan
+
+
+def scanned(params: GridParams | None = None) -> OccupancyGrid:
+    grid = OccupancyGrid(params)
+    for sensor in ([2.0, 1.5, 1.0], [1.0, 2.2, 0.5]):
+        grid.integrate_scan(room_scan(np.array(sensor)), np.array(sensor))
+    return grid
+
+
+def assert_same(a: OccupancyGrid, b: OccupancyGrid) -> None:
+    assert a.params == b.params
+    (ca, va), (cb, vb) = a.cells(), b.cells()
+    oa, ob = np.lexsort(ca.T), np.lexsort(cb.T)
+    np.testing.assert_array_equal(ca[oa], cb[ob])
+    np.testing.assert_array_equal(va[oa], vb[ob])  # bit for bit
+
+
+@pytest.mark.parametrize(
+    "params",
+    [GridParams(), GridParams(resolution_m=0.05, block_size_cells=5, origin_m=(0.1, -2.0, 0.3),
+                              prob_hit=0.8, clamp_max=0.99, no_return_free_m=2.0)],
+)  # fmt: skip
+def test_round_trip_is_lossless(tmp_path: Path, params: GridParams) -> None:
+    grid = scanned(params)
+    path = save_map(tmp_path / "map.npz", grid)
+    assert_same(grid, load_map(path))
+    assert path.stat().st_size < grid.known_count() * 8  # compressed
+
+
+def test_an_empty_map_round_trips(tmp_path: Path) -> None:
+    loaded = load_map(save_map(tmp_path / "empty.npz", OccupancyGrid()))
+    assert loaded.known_count() == 0
+
+
+def test_loaded_maps_keep_integrating(tmp_path: Path) -> None:
+    grid = scanned()
+    loaded = load_map(save_map(tmp_path / "map.npz", grid))
+    sensor = np.array([3.0, 1.0, 1.2])
+    grid.integrate_scan(room_scan(sensor), sensor)
+    loaded.integrate_scan(room_scan(sensor), sensor)
+    assert_same(grid, loaded)
+
+
+def rewrite(path: Path, out: Path, **changes: object) -> Path:
+    with np.load(path) as archive:
+        arrays = {key: archive[key] for key in archive.files}
+    for key, value in changes.items():
+        if value is None:
+            del arrays[key]
+        else:
+            arrays[key] = np.asarray(value)
+    np.savez_compressed(out, **arrays)
+    return out
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"version": 2}, "map format version 2 is not supported .*reads version 1"),
+        ({"format": "something.else"}, "not a coopmap map"),
+        ({"version": None}, r"not a coopmap map \(no format/version entry\)"),
+        ({"known": None}, "map is missing known"),
+        ({"resolution_m": -0.1}, "resolution_m must be a positive number"),
+        ({"block_size_cells": 8}, r"known must be \(\d+, 64\) uint8"),
+        ({"logodds": np.zeros(3)}, "logodds must hold one float64 per known cell"),
+        ({"block_coords": np.zeros((2, 2), int)}, r"block_coords must be \(B, 3\) integers"),
+        ({"origin_m": [0.0, 0.0]}, "origin_m must be 3 floats"),
+        ({"version": 1.5}, "'version' must be a scalar"),
+    ],
+)
+def test_malformed_contents_are_clear_errors(tmp_path: Path, changes: dict, message: str) -> None:
+    good = save_map(tmp_path / "map.npz", scanned())
+    with pytest.raises(MapError, match=message):
+        load_map(rewrite(good, tmp_path / "bad.npz", **changes))
+
+
+def test_values_outside_the_clamps_are_rejected(tmp_path: Path) -> None:
+    good = save_map(tmp_path / "map.npz", scanned())
+    with np.load(good) as archive:
+        values = archive["logodds"].copy()
+    values[0] = 50.0
+    with pytest.raises(MapError, match="outside the clamping bounds"):
+        load_map(rewrite(good, tmp_path / "bad.npz", logodds=values))
+    values[0] = np.nan
+    with pytest.raises(MapError, match="non-finite"):
+        load_map(rewrite(good, tmp_path / "bad2.npz", logodds=values))
+
+
+def test_corrupt_and_truncated_files_are_clear_errors(tmp_path: Path) -> None:
+    good = save_map(tmp_path / "map.npz", scanned())
+    data = good.read_bytes()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(MapError, match=r"truncated.npz: not a readable coopmap map"):
+        load_map(truncated)
+    corrupt = tmp_path / "corrupt.npz"
+    flipped = bytearray(data)
+    middle = len(flipped) // 2
+    flipped[middle : middle + 64] = bytes(64)
+    corrupt.write_bytes(bytes(flipped))
+    with pytest.raises(MapError, match=r"corrupt.npz: not a readable coopmap map"):
+        load_map(corrupt)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip at all")
+    with pytest.raises(MapError, match="not a readable coopmap map"):
+        load_map(junk)
+    with pytest.raises(MapError, match=r"absent\.npz: no such map file"):
+        load_map(tmp_path / "absent.npz")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("format.npy", b"\x93NUMPY garbage")
+        archive.writestr("version.npy", b"\x93NUMPY garbage")
+    (tmp_path / "garbage.npz").write_bytes(buffer.getvalue())
+    with pytest.raises(MapError, match="not a readable coopmap map"):
+        load_map(tmp_path / "garbage.npz")
+
+
+def test_a_failed_write_keeps_the_old_map(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = save_map(tmp_path / "map.npz", scanned())
+    before = path.read_bytes()
+
+    def crash(*args: object, **kwargs: object) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(npz.np, "savez_compressed", crash)
+    with pytest.raises(OSError, match="disk full"):
+        save_map(path, OccupancyGrid())
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]  # no temporary left

@@ -1,0 +1,197 @@
+"""Exact voxel traversal and scan integration against brute force and set-based references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapping import _kernels as kernels
+from mapping.errors import MapError
+from mapping.grid import GridParams, OccupancyGrid
+from tests.mapping.conftest import reference_fusion, room_scan
+
+coordinate = st.floats(-15.0, 15.0, allow_nan=False, allow_subnormal=False)
+point = st.tuples(coordinate, coordinate, coordinate).map(np.array)
+
+
+def segment_box_gap(start: np.ndarray, end: np.ndarray, cell: np.ndarray) -> float:
+    """How far (parameter t) the segment misses the unit cube of ``cell``: ≤ 0 if it meets it."""
+    d = end - start
+    t0, t1 = 0.0, 1.0
+    for axis in range(3):
+        lo, hi = cell[axis] - start[axis], cell[axis] + 1 - start[axis]
+        if d[axis] == 0:
+            if not lo <= 0 <= hi:
+                return np.inf
+            continue
+        with np.errstate(over="ignore"):
+            a, b = sorted((lo / d[axis], hi / d[axis]))
+        t0, t1 = max(t0, a), min(t1, b)
+    return t0 - t1
+
+
+@settings(max_examples=200, deadline=None)
+@given(point, point)
+def test_traversal_visits_exactly_the_cells_of_a_supersampled_ray(
+    start: np.ndarray, end: np.ndarray
+) -> None:
+    cells = kernels.ray_cells(start, end, True)
+    # From the start's cell to the end's, one face-neighbour step at a time.
+    assert tuple(cells[0]) == tuple(np.floor(start).astype(int))
+    assert tuple(cells[-1]) == tuple(np.floor(end).astype(int))
+    steps = np.abs(np.diff(cells, axis=0)).sum(axis=1)
+    assert np.all(steps == 1)
+    assert len(cells) == 1 + int(np.abs(np.floor(end) - np.floor(start)).sum())
+    # None skipped: every cell a dense sampling of the segment passes through is visited.
+    # (Samples within 1e-9 of a cell face are left out: rounding decides their side.)
+    samples = int(np.linalg.norm(end - start) * 1000) + 2
+    t = np.linspace(0.0, 1.0, samples)[:, None]
+    along = np.vstack([start + t * (end - start), start, end])
+    clear = (np.abs(along - np.rint(along)) > 1e-9).all(axis=1)
+    sampled = {tuple(c) for c in np.floor(along[clear]).astype(int)}
+    visited = {tuple(c) for c in cells}
+    assert sampled <= visited
+    # None extra: every visited cell meets the segment (a corner or edge touch at worst).
+    assert max(segment_box_gap(start, end, c) for c in cells) <= 1e-9
+
+
+@pytest.mark.parametrize(
+    ("start", "end", "expected"),
+    [
+        ((0.5, 0.5, 0.5), (3.5, 0.5, 0.5), [(0, 0, 0), (1, 0, 0), (2, 0, 0), (3, 0, 0)]),
+        ((0.5, 0.5, 0.5), (-1.5, 0.5, 0.5), [(0, 0, 0), (-1, 0, 0), (-2, 0, 0)]),
+        # Through a cell edge: y steps before x (OctoMap's tie order: z, then y, then x).
+        ((0.5, 0.5, 0.5), (1.5, 1.5, 0.5), [(0, 0, 0), (0, 1, 0), (1, 1, 0)]),
+        ((0.5, 0.5, 0.5), (1.5, 0.5, 1.5), [(0, 0, 0), (0, 0, 1), (1, 0, 1)]),
+        # Through a corner: z, then y, then x.
+        ((0.5, 0.5, 0.5), (1.5, 1.5, 1.5), [(0, 0, 0), (0, 0, 1), (0, 1, 1), (1, 1, 1)]),
+        ((0.2, 0.2, 0.2), (0.7, 0.9, 0.1), [(0, 0, 0)]),
+    ],
+)
+def test_traversal_of_axis_aligned_and_tied_rays(
+    start: tuple[float, ...], end: tuple[float, ...], expected: list[tuple[int, ...]]
+) -> None:
+    cells = kernels.ray_cells(np.array(start), np.array(end), True)
+    assert [tuple(c) for c in cells] == expected
+    assert len(kernels.ray_cells(np.array(start), np.array(end), False)) == len(expected) - 1
+
+
+def fused_sets(grid: OccupancyGrid) -> tuple[set[tuple[int, ...]], set[tuple[int, ...]]]:
+    cells, values = grid.cells()
+    return {tuple(c) for c in cells[values > 0]}, {tuple(c) for c in cells[values < 0]}
+
+
+@pytest.mark.parametrize(
+    ("block", "resolution", "spread", "seed"),
+    [(16, 0.1, 1.0, 0), (8, 0.05, 5.0, 1), (4, 0.3, 30.0, 2), (5, 0.1, 3.0, 3),
+     (3, 0.05, 20.0, 4), (32, 0.1, 4.0, 5), (2, 0.1, 2.0, 6)],
+)  # fmt: skip
+def test_scan_integration_matches_insert_point_cloud_semantics(
+    block: int, resolution: float, spread: float, seed: int
+) -> None:
+    # Random scans, some rays longer than the 512-cell cube the kernel tracks around the
+    # sensor, blocks that are not powers of two, and a pool that must grow many times.
+    rng = np.random.default_rng(seed)
+    sensor = rng.uniform(-3, 3, 3)
+    points = sensor + rng.normal(0, spread, (int(rng.integers(50, 300)), 3))
+    params = GridParams(resolution_m=resolution, block_size_cells=block)
+    grid = OccupancyGrid(params, capacity_blocks=1)
+    grid.integrate_scan(points, sensor)
+    occupied, free = reference_fusion(points, sensor, resolution)
+    assert fused_sets(grid) == (occupied, free)
+    _, values = grid.cells()
+    np.testing.assert_array_equal(
+        np.unique(values), np.unique([params.logodds_miss, params.logodds_hit][: 1 + 1])
+    )
+    assert grid.cell_updates == len(occupied) + len(free) == grid.known_count()
+
+
+def test_every_cell_is_updated_once_per_scan_and_again_next_scan() -> None:
+    params = GridParams()
+    grid = OccupancyGrid(params)
+    sensor = np.array([0.05, 0.05, 0.05])
+    points = np.repeat([[2.05, 0.05, 0.05]], 500, axis=0)  # 500 identical rays
+    grid.integrate_scan(points, sensor)
+    values = grid.logodds_at(np.array([[k, 0, 0] for k in range(21)]))
+    np.testing.assert_allclose(values[:20], params.logodds_miss, atol=1e-15)
+    np.testing.assert_allclose(values[20], params.logodds_hit, atol=1e-15)
+    assert grid.cell_updates == 21
+    grid.integrate_scan(points, sensor)
+    values = grid.logodds_at(np.array([[k, 0, 0] for k in range(21)]))
+    np.testing.assert_allclose(values[:20], 2 * params.logodds_miss, atol=1e-15)
+    assert grid.scan_count == 2
+
+
+def test_an_end_point_stays_occupied_when_another_ray_crosses_it() -> None:
+    params = GridParams()
+    sensor = np.array([0.05, 0.05, 0.05])
+    near, far = [1.05, 0.05, 0.05], [3.05, 0.05, 0.05]
+    for order in ([near, far], [far, near]):
+        grid = OccupancyGrid(params)
+        grid.integrate_scan(np.array(order), sensor)
+        values = grid.logodds_at(np.array([[10, 0, 0], [30, 0, 0], [20, 0, 0]]))
+        np.testing.assert_allclose(
+            values, [params.logodds_hit, params.logodds_hit, params.logodds_miss], atol=1e-15
+        )
+
+
+def test_no_return_beams_are_free_up_to_the_cut_off() -> None:
+    params = GridParams(no_return_free_m=4.0)
+    grid = OccupancyGrid(params)
+    sensor = np.array([0.05, 0.05, 0.05])
+    grid.integrate_scan(np.zeros((0, 3)), sensor, np.array([[2.0, 0.0, 0.0]]))
+    cells, values = grid.cells()
+    # Free from the sensor's cell to the one before the cut-off's (4.05 m: cell 40).
+    assert sorted(c[0] for c in cells) == list(range(40))
+    assert np.all(cells[:, 1:] == 0)
+    np.testing.assert_allclose(values, params.logodds_miss)
+    silent = OccupancyGrid(GridParams(no_return_free_m=0.0))
+    silent.integrate_scan(np.zeros((0, 3)), sensor, np.array([[1.0, 0.0, 0.0]]))
+    assert silent.known_count() == 0
+
+
+def test_no_return_beams_match_the_reference() -> None:
+    rng = np.random.default_rng(9)
+    sensor = np.array([0.31, -0.42, 0.45])
+    directions = rng.normal(size=(200, 3))
+    points = room_scan(np.array([2.0, 1.5, 1.2]), azimuth_steps=20, elevation_steps=10) - [
+        2.0 - 0.31,
+        1.5 + 0.42,
+        1.2 - 0.45,
+    ]
+    params = GridParams(no_return_free_m=2.5)
+    grid = OccupancyGrid(params)
+    grid.integrate_scan(points, sensor, directions)
+    ends = sensor + 2.5 * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    assert fused_sets(grid) == reference_fusion(points, sensor, params.resolution_m, ends)
+
+
+@pytest.mark.parametrize(
+    ("points", "sensor", "directions", "message"),
+    [
+        ([[1, 2, 3], [np.nan, 0, 0]], [0, 0, 0], None, r"points\[1\] is not finite"),
+        ([[1, 2, np.inf]], [0, 0, 0], None, r"points\[0\] is not finite"),
+        ([[1, 2, 3]], [0, np.nan, 0], None, r"sensor\[0\] is not finite"),
+        ([[1, 2]], [0, 0, 0], None, r"points must be \(N, 3\), got \(1, 2\)"),
+        ([[1, 2, 3]], [0, 0, 0], [[0, 0, 0]], r"no_return_directions\[0\] is not a direction"),
+        ([[1, 2, 3]], [0, 0, 0], [[1, 0]], r"no_return_directions must be \(M, 3\)"),
+        ([[1e9, 0, 0]], [0, 0, 0], None, r"beyond the .* m from the grid origin"),
+    ],
+)
+def test_bad_scans_are_rejected_and_leave_the_grid_as_it_was(
+    points: list, sensor: list, directions: list | None, message: str
+) -> None:
+    grid = OccupancyGrid()
+    grid.integrate_scan(np.array([[0.5, 0.5, 0.5]]), np.zeros(3))
+    before = grid.cells()
+    with pytest.raises(MapError, match=message):
+        grid.integrate_scan(
+            np.array(points, dtype=float),
+            np.array(sensor, dtype=float),
+            None if directions is None else np.array(directions, dtype=float),
+        )
+    after = grid.cells()
+    np.testing.assert_array_equal(before[0], after[0])
+    np.testing.assert_array_equal(before[1], after[1])
