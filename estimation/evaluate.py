@@ -122,7 +122,7 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         "median_deg": float(np.degrees(np.median(errors[:, 1]))) if len(errors) else None,
         "max_m": float(errors[:, 0].max()) if len(errors) else None,
     }
-    metrics["global_localization"] = report.get("global_localization", {"searches": 0})
+    metrics["global_localization"] = _search_errors(dataset, report.get("global_localization", {}))
     metrics["map"] = map_quality(load_map(result / "map.npz"), dataset / "world.yaml")
     metrics["timings_s"] = report["timings_s"]
     metrics["failures"] = {
@@ -162,3 +162,55 @@ def _mutual_errors(dataset: Path, result: Path) -> np.ndarray:
         out.append([math.hypot(*(measured[:2] - true_rel[:2])),
                     abs(math.remainder(measured[2] - true_rel[2], 2 * math.pi))])  # fmt: skip
     return np.array(out).reshape(-1, 2)
+
+
+def _search_errors(dataset: Path, found: dict[str, Any]) -> dict[str, Any]:
+    """Errors of every search against the truth: loop-closure searches give a station's pose in
+    an older station's frame; relocalizations a robot's pose in the map frame."""
+    from estimation.pipeline import load_dataset
+
+    data = load_dataset(dataset)
+    stops = {robot: data.stop_times(robot) for robot in data.robots}
+
+    def truth(label: str, at: float | None = None) -> np.ndarray:
+        t = stops[label[0]][int(label[1:])] if at is None else at
+        return _truth_at(dataset, label[0], np.array([t]))[0]
+
+    def error(pose: list[float], expected: np.ndarray) -> tuple[float, float]:
+        return (math.dist(pose[:2], expected[:2]),
+                abs(math.degrees(math.remainder(pose[2] - expected[2], 2 * math.pi))))  # fmt: skip
+
+    out: dict[str, Any] = {"factors": found.get("factors", 0)}
+    rows = []
+    for record in found.get("searches", []):
+        a, b = truth(record["against"]), truth(record["station"])
+        c, s = math.cos(a[2]), math.sin(a[2])
+        dx, dy = b[0] - a[0], b[1] - a[1]
+        relative = np.array([c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]])
+        rows.append((*error(record["pose"], relative), record["used"]))
+    out["searches"] = len(rows)
+    if rows:
+        e = np.array(rows, dtype=float)
+        used = e[:, 2] > 0
+        out.update(
+            median_m=float(np.median(e[:, 0])),
+            median_deg=float(np.median(e[:, 1])),
+            max_m=float(e[:, 0].max()),
+            max_deg=float(e[:, 1].max()),
+            used=int(used.sum()),
+            used_max_m=float(e[used, 0].max()) if used.any() else None,
+        )
+    for band in ("ceiling", "floor"):
+        errors = []
+        for record in found.get("relocalization", []):
+            if record["band"] == band:
+                expected = truth(record["station"], record["time_s"] + 1.0)
+                errors.append(error(record["pose"], expected))
+        if errors:
+            e = np.array(errors)
+            ok = (e[:, 0] < 0.1) & (e[:, 1] < 1.0)
+            out[f"relocalization_{band}"] = {
+                "searches": len(e), "success": int(ok.sum()),
+                "median_m": float(np.median(e[:, 0])), "median_deg": float(np.median(e[:, 1])),
+            }  # fmt: skip
+    return out

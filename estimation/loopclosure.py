@@ -196,8 +196,10 @@ def relocalize(
             key = pose_key(sweep.robot, sweep.index)
             if key not in estimate:
                 continue
+            dwell_sweeps = [s for s in sweeps if s.dwell == number]
             for which in ("ceiling", "floor"):
-                local = _band([sweep], estimate[key], estimate, config, which)
+                # The local map around the robot: every sweep of the dwell, in its frame.
+                local = _band(dwell_sweeps, estimate[key], estimate, config, which)
                 global_ = _band(mapped, origin, estimate, config, which)
                 if local is None or global_ is None:
                     continue
