@@ -245,6 +245,7 @@ class SearchConfig(_Section):
     peak_radius_m: float = Field(0.5, gt=0, description="neighbourhood of the peak")
     peak_radius_deg: float = Field(10.0, gt=0)
     free_weight: float = Field(0.5, ge=0, description="weight of free-space agreement")
+    beta: float = Field(0.05, gt=0, description="PDF ∝ exp(beta · score), calibrated")
 
     @model_validator(mode="after")
     def _windows_ordered(self) -> Self:

@@ -45,7 +45,7 @@ from functools import cached_property
 
 import numpy as np
 import scipy.fft as sfft
-from numba import njit, prange
+from numba import njit
 
 from estimation.errors import EstimationError
 from estimation.posepdf import PosePdf
@@ -56,6 +56,7 @@ __all__ = [
     "SearchResult",
     "WindowStep",
     "WindowedResult",
+    "best_pose",
     "best_pose_outside",
     "correlate_all",
     "match_values",
@@ -63,6 +64,7 @@ __all__ = [
     "peak_covariance",
     "pose_lattice",
     "refine_peak",
+    "refine_pose",
     "result_from_scores",
     "score_poses_loop",
     "search",
@@ -76,6 +78,8 @@ _SNAP = 1e-6
 #: centres exactly on a boundary (e.g. on the diagonal at 45°) fall the same way whatever the
 #: float round-off.
 _EDGE = 1e-9
+#: Zero cells around the global values for the spline refinement.
+_PAD = 3
 #: Rotated centres this close to a boundary are ties: the quarter-turn shortcut is not used.
 _TIE = 1e-7
 
@@ -443,8 +447,32 @@ def _plan(
     )
 
 
-def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray) -> None:
-    """Fill ``out[t]`` for every rotation served by the base rotations ``plan.base[chunk]``."""
+@dataclass
+class _Slices:
+    """Per-rotation PDF bookkeeping filled while the scores are hot in cache: ``prob[t]`` =
+    exp(β·(score − maxima[t])), ``sums[t]`` its sum; the slices are put on one scale later."""
+
+    beta: float
+    prob: np.ndarray | None  # (T, Y, X) float32; None: only the maxima are kept
+    maxima: np.ndarray  # (T,) float64
+    sums: np.ndarray  # (T,) float64
+
+    def fill(self, t: int, scores: np.ndarray) -> None:
+        top = float(scores.max())
+        if self.prob is None:
+            self.maxima[t] = top
+            return
+        target = self.prob[t]
+        np.subtract(scores, np.float32(top), out=target)
+        target *= np.float32(self.beta)
+        np.exp(target, out=target)
+        self.maxima[t] = top
+        self.sums[t] = float(target.sum(dtype=np.float64))
+
+
+def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices) -> None:
+    """Fill ``out[t]`` (and ``slices``) for every rotation served by the base rotations
+    ``plan.base[chunk]``."""
     cells, extent = plan.cells, plan.extent
     step = len(plan.rotations) // 4
     splat = np.zeros((extent, extent), dtype=np.float32)
@@ -460,12 +488,14 @@ def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray) -> None:
     def emit(t: int, turn: _Turn, local_spectrum: np.ndarray, b: np.ndarray) -> None:
         if turn.spectrum is None:
             out[t] = 0.0
+            slices.fill(t, out[t])
             return
         x0, y0 = b - turn.b_min
         # Inverse along y, then along x only for the rows of the window.
         half = sfft.ifft(local_spectrum * turn.spectrum, axis=0)[y0 : y0 + turn.size[1]]
         corr = sfft.irfft(half, n=plan.shapes[turn.parity][1], axis=1, overwrite_x=True)
         out[t] = turn.view(corr[:, x0 : x0 + turn.size[0]])
+        slices.fill(t, out[t])
 
     for j in plan.base[chunk]:
         j = int(j)
@@ -486,6 +516,43 @@ def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray) -> None:
             emit(j + turn.k * step, turn, first if turn.parity == 0 else odd, plan.b[j])
 
 
+def _correlate_lattice(
+    local: Band,
+    global_: Band,
+    x_m: np.ndarray,
+    y_m: np.ndarray,
+    yaw_rad: np.ndarray,
+    free_weight: float,
+    beta: float | None,
+    workers: int,
+) -> tuple[np.ndarray, _Slices]:
+    """Scores (T, Y, X) and the per-rotation PDF bookkeeping (maxima only when β is None)."""
+    r = _check_pair(local, global_)
+    cells = _local_cells(local, free_weight)
+    values = match_values(global_, free_weight)
+    origin = np.asarray(global_.lower_xy, dtype=float)
+    s = _frac(-np.asarray(local.lower_xy, dtype=float) / r)
+    m_lo = np.array(
+        [round((x_m[0] - origin[0]) / r - s[0]), round((y_m[0] - origin[1]) / r - s[1])]
+    )
+    m_hi = m_lo + np.array([len(x_m), len(y_m)]) - 1
+    local_frac = _frac(np.asarray(local.lower_xy, dtype=float) / r)
+    symmetric = local_frac[0] == local_frac[1] and local_frac[0] in (0.0, 0.5)
+    plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
+    shape = (len(yaw_rad), len(y_m), len(x_m))
+    out = np.empty(shape, dtype=np.float32)
+    prob = None if beta is None else np.empty(shape, np.float32)
+    slices = _Slices(beta or 0.0, prob, np.empty(shape[0]), np.empty(shape[0]))
+    chunks = [c for c in np.array_split(np.arange(len(plan.base)), max(1, workers)) if len(c)]
+    if len(chunks) == 1:
+        _correlate(plan, chunks[0], out, slices)
+    else:
+        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
+            for future in [pool.submit(_correlate, plan, c, out, slices) for c in chunks]:
+                future.result()
+    return out, slices
+
+
 def correlate_all(
     local: Band,
     global_: Band,
@@ -499,27 +566,21 @@ def correlate_all(
 
     Equal to ``score_poses_loop`` up to float32 round-off.
     """
-    r = _check_pair(local, global_)
-    cells = _local_cells(local, free_weight)
-    values = match_values(global_, free_weight)
-    origin = np.asarray(global_.lower_xy, dtype=float)
-    s = _frac(-np.asarray(local.lower_xy, dtype=float) / r)
-    m_lo = np.array(
-        [round((x_m[0] - origin[0]) / r - s[0]), round((y_m[0] - origin[1]) / r - s[1])]
-    )
-    m_hi = m_lo + np.array([len(x_m), len(y_m)]) - 1
-    local_frac = _frac(np.asarray(local.lower_xy, dtype=float) / r)
-    symmetric = local_frac[0] == local_frac[1] and local_frac[0] in (0.0, 0.5)
-    plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
-    out = np.empty((len(yaw_rad), len(y_m), len(x_m)), dtype=np.float32)
-    chunks = [c for c in np.array_split(np.arange(len(plan.base)), max(1, workers)) if len(c)]
-    if len(chunks) == 1:
-        _correlate(plan, chunks[0], out)
-    else:
-        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
-            for future in [pool.submit(_correlate, plan, c, out) for c in chunks]:
-                future.result()
-    return out
+    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, free_weight, None, workers)[0]
+
+
+def _normalise_slices(slices: _Slices) -> np.ndarray:
+    """Put the per-rotation exponentials on one scale and normalise, in place."""
+    assert slices.prob is not None
+    top = slices.maxima.max()
+    factors = np.exp(slices.beta * (slices.maxima - top))
+    total = float((factors * slices.sums).sum())
+    for t, factor in enumerate(factors / total):
+        if factor * slices.sums[t] * total < 1e-30:
+            slices.prob[t] = 0.0  # below what float32 keeps of a PDF that sums to 1
+        else:
+            slices.prob[t] *= np.float32(factor)
+    return slices.prob
 
 
 # -- the peak: refinement, dominance, covariance -----------------------------------------------
@@ -591,7 +652,9 @@ def best_pose_outside(
     ``maxima``: the maximum of each rotation's slice, if already known.
     """
     (it, iy, ix), inside, _ = _neighbourhood(index, x_m, y_m, yaw_rad, radius_m, radius_rad)
-    per_slice = np.array(_slice_maxima(scores) if maxima is None else maxima, dtype=np.float64)
+    if maxima is None:
+        maxima = scores.reshape(len(scores), -1).max(axis=1)
+    per_slice = np.array(maxima, dtype=np.float64)
     for row, t in enumerate(it):
         sub = scores[t].astype(np.float64)  # one slice: cheap
         box = sub[np.ix_(iy, ix)]
@@ -680,6 +743,114 @@ def refine_peak(scores: np.ndarray, index: tuple[int, int, int], yaw_wraps: bool
     return step
 
 
+@njit(cache=True, nogil=True)
+def _spline_score(
+    centres: np.ndarray,
+    w: np.ndarray,
+    coefficients: np.ndarray,
+    origin: np.ndarray,
+    resolution_m: float,
+    pose: np.ndarray,
+    gradient: np.ndarray,
+) -> float:
+    """Σ w_k · v_G(T·c_k) with v_G interpolated by a cubic B-spline through the global cell
+    centres (``coefficients``: the prefiltered values, padded by ``_PAD`` cells): the score as a
+    smooth function of the pose; its gradient (x, y, yaw) is written into ``gradient``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    rows, cols = coefficients.shape
+    total = 0.0
+    gx = 0.0
+    gy = 0.0
+    gt = 0.0
+    bx = np.empty(4)
+    by = np.empty(4)
+    dx = np.empty(4)
+    dy = np.empty(4)
+    for k in range(len(w)):
+        rx = c * centres[k, 0] - s * centres[k, 1]
+        ry = s * centres[k, 0] + c * centres[k, 1]
+        fx = (rx + pose[0] - origin[0]) / resolution_m - 0.5 + _PAD
+        fy = (ry + pose[1] - origin[1]) / resolution_m - 0.5 + _PAD
+        j0 = math.floor(fx)
+        i0 = math.floor(fy)
+        if i0 < 1 or j0 < 1 or i0 + 2 >= rows or j0 + 2 >= cols:
+            continue  # off the padded grid: the values there are 0
+        for axis in range(2):
+            t = fx - j0 if axis == 0 else fy - i0
+            u = 1.0 - t
+            b = bx if axis == 0 else by
+            d = dx if axis == 0 else dy
+            b[0] = u * u * u / 6.0
+            b[1] = (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0
+            b[2] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) / 6.0
+            b[3] = t * t * t / 6.0
+            d[0] = -u * u / 2.0
+            d[1] = (3.0 * t * t - 4.0 * t) / 2.0
+            d[2] = (-3.0 * t * t + 2.0 * t + 1.0) / 2.0
+            d[3] = t * t / 2.0
+        value = 0.0
+        dfx = 0.0
+        dfy = 0.0
+        for a in range(4):
+            row_value = 0.0
+            row_slope = 0.0
+            for e in range(4):
+                coefficient = coefficients[i0 - 1 + a, j0 - 1 + e]
+                row_value += bx[e] * coefficient
+                row_slope += dx[e] * coefficient
+            value += by[a] * row_value
+            dfx += by[a] * row_slope
+            dfy += dy[a] * row_value
+        total += w[k] * value
+        gx += w[k] * dfx
+        gy += w[k] * dfy
+        gt += w[k] * (dfx * -ry + dfy * rx)
+    gradient[0] = gx / resolution_m
+    gradient[1] = gy / resolution_m
+    gradient[2] = gt / resolution_m
+    return total
+
+
+def refine_pose(
+    local: Band,
+    global_: Band,
+    start: np.ndarray,
+    free_weight: float,
+    bounds: np.ndarray,
+) -> np.ndarray:
+    """Maximise the score with the global values interpolated by a cubic B-spline, from
+    ``start`` (x, y, yaw) within ``bounds`` (3, 2): a continuous refinement of the lattice's best
+    pose, which the lattice samples only every cell and every angular step. (A bilinear
+    interpolant has kinks exactly where the lattice puts the local cell centres.)"""
+    from scipy.ndimage import spline_filter
+    from scipy.optimize import minimize
+
+    r = _check_pair(local, global_)
+    cells = _local_cells(local, free_weight)
+    centres = cells.u * r
+    values = np.pad(match_values(global_, free_weight), _PAD)
+    coefficients = spline_filter(values, order=3, mode="mirror")
+    origin = np.asarray(global_.lower_xy, dtype=float)
+    # Scale the variables so that one lattice step is one unit along each.
+    scale = np.maximum(bounds[:, 1] - bounds[:, 0], 1e-12) / 2.0
+    centre = bounds.mean(axis=1)
+    gradient = np.zeros(3)
+
+    def cost(z: np.ndarray) -> tuple[float, np.ndarray]:
+        pose = centre + z * scale
+        value = _spline_score(centres, cells.w, coefficients, origin, r, pose, gradient)
+        return -value, -gradient * scale
+
+    start = np.clip(np.asarray(start, dtype=float), bounds[:, 0], bounds[:, 1])
+    z0 = (start - centre) / scale
+    found = minimize(
+        cost, z0, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * 3,
+        options={"maxiter": 60, "ftol": 1e-12, "gtol": 1e-9},
+    )  # fmt: skip
+    best = found.x if found.fun <= cost(z0)[0] else z0
+    return np.asarray(centre + best * scale, dtype=float)
+
+
 # -- the search --------------------------------------------------------------------------------
 
 
@@ -725,47 +896,13 @@ class SearchResult:
         return x in (0, len(self.x_m) - 1), y in (0, len(self.y_m) - 1)
 
 
-@njit(cache=True, parallel=True)
-def _slice_maxima(scores: np.ndarray) -> np.ndarray:
-    """(T,) float64 maximum of each rotation's slice."""
-    out = np.empty(scores.shape[0])
-    for t in prange(scores.shape[0]):
-        out[t] = scores[t].max()
-    return out
-
-
-@njit(cache=True, parallel=True, fastmath=True)
-def _exp_shifted(scores: np.ndarray, beta: float, top: float, out: np.ndarray) -> float:
-    """out = exp(β·(score − top)) in float32; returns the sum (float64)."""
-    sums = np.zeros(scores.shape[0])
-    b = np.float32(beta)
-    shift = np.float32(top)
-    for t in prange(scores.shape[0]):
-        acc = 0.0
-        for i in range(scores.shape[1]):
-            for j in range(scores.shape[2]):
-                v = np.exp(b * (scores[t, i, j] - shift))
-                out[t, i, j] = v
-                acc += v
-        sums[t] = acc
-    return float(sums.sum())
-
-
-@njit(cache=True, parallel=True)
-def _scale(values: np.ndarray, factor: float) -> None:
-    f = np.float32(factor)
-    for t in prange(values.shape[0]):
-        values[t] *= f
-
-
-def normalise(scores: np.ndarray, beta: float, top: float | None = None) -> np.ndarray:
+def normalise(scores: np.ndarray, beta: float) -> np.ndarray:
     """float32 probabilities ∝ exp(β·(score − max)), summing to 1."""
-    scores = np.ascontiguousarray(scores, dtype=np.float32)
-    top = float(scores.max()) if top is None else top
-    prob = np.empty_like(scores)
-    total = _exp_shifted(scores, beta, top, prob)
-    _scale(prob, 1.0 / total)
-    return prob
+    scores = np.asarray(scores, dtype=np.float32)
+    slices = _Slices(beta, np.empty_like(scores), np.empty(len(scores)), np.empty(len(scores)))
+    for t in range(len(scores)):
+        slices.fill(t, scores[t])
+    return _normalise_slices(slices)
 
 
 def result_from_scores(
@@ -775,22 +912,40 @@ def result_from_scores(
     yaw_rad: np.ndarray,
     params: SearchParams,
     started: float,
+    grids: tuple[Band, Band] | None = None,
+    slices: _Slices | None = None,
 ) -> SearchResult:
-    """Best pose, refinement, PDF, covariance and dominance of a score lattice (T, Y, X)."""
-    maxima = _slice_maxima(scores)
+    """Best pose, refinement, PDF, covariance and dominance of a score lattice (T, Y, X).
+
+    The best lattice pose is refined by a quadratic fitted to the scores around it, then, when
+    the (local, global) ``grids`` are given, by maximising the bilinearly interpolated score
+    within one lattice step of it (``refine_pose``).
+    """
+    scores = np.asarray(scores, dtype=np.float32)
+    if slices is None:
+        slices = _Slices(
+            params.beta, np.empty_like(scores), np.empty(len(scores)), np.empty(len(scores))
+        )
+        for i in range(len(scores)):
+            slices.fill(i, scores[i])
+    maxima = slices.maxima.copy()
     t = int(np.argmax(maxima))
     y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
     best = float(scores[t, y, x])
     delta = refine_peak(scores, (t, y, x), _wraps(yaw_rad))
     steps = np.array(_steps(x_m, y_m, yaw_rad))
-    pose = np.array([x_m[x], y_m[y], yaw_rad[t]]) + delta * steps
+    lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
+    pose = lattice + delta * steps
+    if grids is not None:
+        bounds = np.column_stack([lattice - steps, lattice + steps])
+        pose = refine_pose(grids[0], grids[1], pose, params.free_weight, bounds)
     pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
     radii = (params.peak_radius_m, params.peak_radius_rad)
     elsewhere = best_pose_outside(scores, (t, y, x), x_m, y_m, yaw_rad, *radii, maxima=maxima)
     with np.errstate(over="ignore"):
         ratio = float(np.exp(params.beta * (best - elsewhere)))
     covariance = peak_covariance(scores, (t, y, x), x_m, y_m, yaw_rad, params.beta, *radii)
-    prob = normalise(scores, params.beta, best)
+    prob = _normalise_slices(slices)
     return SearchResult(
         x_m=x_m,
         y_m=y_m,
@@ -823,10 +978,35 @@ def search(
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
-    scores = correlate_all(
-        local, global_, x_m, y_m, yaw_rad, params.free_weight, workers=params.thread_count()
+    scores, slices = _correlate_lattice(
+        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.beta, params.thread_count()
     )
-    return result_from_scores(scores, x_m, y_m, yaw_rad, params, started)
+    return result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices)
+
+
+def best_pose(
+    local: Band,
+    global_: Band,
+    params: SearchParams,
+    window_m: tuple[float, float, float, float] | None = None,
+) -> tuple[np.ndarray, float, float]:
+    """The refined best pose alone (x_m, y_m, yaw_rad), its lattice score and the seconds it
+    took: the same exhaustive correlation as ``search``, without the PDF."""
+    started = time.perf_counter()
+    x_m, y_m, _ = pose_lattice(local, global_, window_m)
+    yaw_rad = yaw_lattice(params.angular_resolution_rad)
+    scores, slices = _correlate_lattice(
+        local, global_, x_m, y_m, yaw_rad, params.free_weight, None, params.thread_count()
+    )
+    t = int(np.argmax(slices.maxima))
+    y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
+    steps = np.array(_steps(x_m, y_m, yaw_rad))
+    lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
+    pose = lattice + refine_peak(scores, (t, y, x), _wraps(yaw_rad)) * steps
+    bounds = np.column_stack([lattice - steps, lattice + steps])
+    pose = refine_pose(local, global_, pose, params.free_weight, bounds)
+    pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
+    return pose, float(scores[t, y, x]), time.perf_counter() - started
 
 
 # -- windowed search around an estimate --------------------------------------------------------

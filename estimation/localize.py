@@ -1,0 +1,180 @@
+"""``coopmap localize``: global localization of a scan grid in a map, both ROS map_server files.
+
+Glue between the configuration, the map_server reader of ``mapping.pgm`` and the search of
+``estimation.search``: read both grids, search the whole map (or, given a prior position, a
+window around it that grows until the peak is dominant), and report the pose of the scan grid's
+frame in the map frame with the fields of DESIGN §11; optionally draw the position PDF.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimation.config import ConfigError, SearchConfig
+from estimation.search import SearchParams, SearchResult, WindowStep, search, windowed_search
+from mapping.band import Band
+from mapping.pgm import read_band_pgm
+from sensors.atomic import atomic_path
+
+__all__ = ["Localization", "localize_files", "render_pdf", "search_params"]
+
+
+def search_params(config: SearchConfig, workers: int = 0) -> SearchParams:
+    """The search parameters of the configuration's ``search`` section."""
+    return SearchParams(
+        angular_resolution_rad=config.angular_resolution_rad,
+        free_weight=config.free_weight,
+        beta=config.beta,
+        peak_radius_m=config.peak_radius_m,
+        peak_radius_rad=math.radians(config.peak_radius_deg),
+        dominance_ratio=config.dominance_ratio,
+        workers=workers,
+    )
+
+
+@dataclass(frozen=True)
+class Localization:
+    """A localization: the search's answer, the windows it took, and the two grids."""
+
+    result: SearchResult
+    windows: tuple[WindowStep, ...]
+    dominant: bool
+    map_band: Band
+    scan_band: Band
+    seconds: float  # reading excluded
+
+    def as_json(self) -> dict[str, Any]:
+        """DESIGN §11's fields, plus the dominance verdict and the windows searched."""
+        x, y, yaw = (float(v) for v in self.result.pose)
+        return {
+            "x_m": x,
+            "y_m": y,
+            "yaw_deg": math.degrees(yaw),
+            "cov": [[float(v) for v in row] for row in self.result.covariance],
+            "peak_ratio": _finite(self.result.peak_ratio),
+            "seconds": self.seconds,
+            "dominant": self.dominant,
+            "windows_m": [w.side_m for w in self.windows],
+            "poses_searched": int(self.result.scores.size),
+        }
+
+
+def _finite(value: float) -> float | None:
+    """JSON has no infinity: a peak with nothing elsewhere reports null."""
+    return float(value) if math.isfinite(value) else None
+
+
+def localize_files(
+    map_yaml: Path,
+    scan_yaml: Path,
+    config: SearchConfig,
+    *,
+    prior: tuple[float, float, float] | None = None,
+    window_m: float | None = None,
+) -> Localization:
+    """Localize the scan grid in the map grid.
+
+    Without a prior the whole map is searched. With ``prior`` (x_m, y_m, yaw_deg) a square
+    window of side ``window_m`` (default ``config.window_m``) centred on the prior position is
+    searched, doubling until the peak is dominant, the map is covered or the side reaches
+    ``config.max_window_m``; every rotation is searched either way (the prior yaw is not used).
+    """
+    if window_m is not None and prior is None:
+        raise ConfigError("--window-m needs --prior: the window is centred on the prior position")
+    if window_m is not None and not (math.isfinite(window_m) and window_m > 0):
+        raise ConfigError(f"--window-m must be a positive number of metres, got {window_m}")
+    map_band = read_band_pgm(map_yaml)
+    scan_band = read_band_pgm(scan_yaml)
+    params = search_params(config)
+    started = time.perf_counter()
+    if prior is None:
+        result = search(scan_band, map_band, params)
+        windows: tuple[WindowStep, ...] = ()
+        dominant = result.is_dominant(params.dominance_ratio)
+    else:
+        side = config.window_m if window_m is None else window_m
+        found = windowed_search(
+            scan_band,
+            map_band,
+            params,
+            prior[:2],
+            side,
+            max(side, config.max_window_m),
+        )
+        result, windows, dominant = found.result, found.steps, found.dominant
+    return Localization(
+        result=result,
+        windows=windows,
+        dominant=dominant,
+        map_band=map_band,
+        scan_band=scan_band,
+        seconds=time.perf_counter() - started,
+    )
+
+
+def render_pdf(localization: Localization, path: Path) -> Path:
+    """Two panels: the map with the scan's occupied cells drawn at the best pose, and the
+    position PDF (summed over rotations, the paper's Fig. 5b) as a log-scale heat map with the
+    best pose marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    result = localization.result
+    band, scan = localization.map_band, localization.scan_band
+    x, y, yaw = result.pose
+    fig, (ax_map, ax_pdf) = plt.subplots(1, 2, figsize=(13, 6), constrained_layout=True)
+
+    shown = np.where(band.known, band.occupancy, np.nan)
+    cmap = matplotlib.colormaps["Greys"].with_extremes(bad="#d8e4f0")
+    ax_map.imshow(shown, origin="lower", extent=band.extent(), cmap=cmap, vmin=0, vmax=1)
+    gx, gy = scan.cell_centers()
+    occupied = scan.known & (scan.occupancy >= 0.5)
+    c, s = math.cos(yaw), math.sin(yaw)
+    px = c * gx[occupied] - s * gy[occupied] + x
+    py = s * gx[occupied] + c * gy[occupied] + y
+    ax_map.scatter(px, py, s=2, c="tab:red", linewidths=0, label="scan, occupied cells")
+    ax_map.set_title("map, with the scan at the best pose")
+    ax_map.legend(loc="upper right", markerscale=4)
+
+    marginal = result.prob.sum(axis=0, dtype=np.float64)
+    with np.errstate(divide="ignore"):
+        decades = np.log10(marginal / marginal.max())
+    decades = np.maximum(decades, -12.0)
+    step_x, step_y = result.x_m[1] - result.x_m[0], result.y_m[1] - result.y_m[0]
+    extent = (
+        result.x_m[0] - step_x / 2,
+        result.x_m[-1] + step_x / 2,
+        result.y_m[0] - step_y / 2,
+        result.y_m[-1] + step_y / 2,
+    )
+    image = ax_pdf.imshow(decades, origin="lower", extent=extent, cmap="magma", vmin=-12, vmax=0)
+    fig.colorbar(image, ax=ax_pdf, label="log10 P(x, y) / max (summed over rotations)")
+    for ax in (ax_map, ax_pdf):
+        ax.plot([x], [y], marker="o", ms=9, mfc="none", mec="tab:cyan", mew=2)
+        ax.annotate(
+            "",
+            xy=(x + 0.8 * c, y + 0.8 * s),
+            xytext=(x, y),
+            arrowprops={"arrowstyle": "->", "color": "tab:cyan", "lw": 2},
+        )
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_aspect("equal")
+    ratio = result.peak_ratio
+    ax_pdf.set_title(
+        f"position PDF: best x={x:.2f} m, y={y:.2f} m, yaw={math.degrees(yaw):.1f}°, "
+        f"peak ratio {ratio:.3g}"
+    )
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return path

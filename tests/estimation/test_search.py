@@ -1,0 +1,298 @@
+"""The exhaustive search: exact against the per-pose loop, accurate, honest about ambiguity."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimation.errors import EstimationError
+from estimation.posepdf import PosePdf
+from estimation.search import (
+    SearchParams,
+    correlate_all,
+    match_values,
+    normalise,
+    pose_lattice,
+    refine_peak,
+    score_poses_loop,
+    search,
+    windowed_search,
+    yaw_lattice,
+)
+from estimation.search_scenes import (
+    corridor,
+    distinctive_room,
+    local_view,
+    random_building,
+    rasterise,
+)
+from mapping.band import Band
+
+
+def random_band(rng: np.random.Generator, shape: tuple[int, int], origin: list[float]) -> Band:
+    occupancy = rng.random(shape)
+    known = rng.random(shape) < 0.8
+    return Band(
+        occupancy=np.where(known, occupancy, 0.0),
+        known=known,
+        lower_xy=np.array(origin),
+        resolution_m=0.1,
+    )
+
+
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    d = np.asarray(estimate, dtype=float) - truth
+    return math.hypot(d[0], d[1]), abs(math.degrees((d[2] + math.pi) % (2 * math.pi) - math.pi))
+
+
+@pytest.fixture(scope="module")
+def room() -> tuple[Band, object]:
+    scene = distinctive_room(8.0)
+    return rasterise(scene, np.zeros(3), (-0.5, -0.5), (66, 90), 0.1), scene
+
+
+# -- exactness ---------------------------------------------------------------------------------
+
+CASES = [
+    # local grid origin (cells on a corner: quarter-turn shortcut), window, angular step
+    pytest.param([-0.6, -0.5], None, 10.0, id="corner-aligned"),
+    pytest.param([-0.55, -0.45], None, 3.0, id="centre-aligned-ties-at-30-45-60"),
+    pytest.param([0.33, -0.71], None, 10.0, id="off-lattice-direct"),
+    pytest.param([-0.6, -0.5], (1.5, 2.2, -1.5, -0.3), 5.0, id="window"),
+    pytest.param([-0.4, -0.4], (0.2, 5.0, -1.0, 0.0), 7.2, id="corner-window-not-quarter"),
+]
+
+
+@pytest.mark.parametrize(("origin", "window", "step_deg"), CASES)
+def test_fast_search_equals_the_per_pose_loop(
+    origin: list[float], window: tuple[float, float, float, float] | None, step_deg: float
+) -> None:
+    rng = np.random.default_rng(7)
+    local = random_band(rng, (9, 11), origin)
+    global_ = random_band(rng, (19, 24), [1.0, -2.0])
+    x_m, y_m, _ = pose_lattice(local, global_, window)
+    yaw = yaw_lattice(math.radians(step_deg))
+    fast = correlate_all(local, global_, x_m, y_m, yaw, 0.5, workers=2)
+    slow = score_poses_loop(local, global_, x_m, y_m, yaw, 0.5)
+    assert fast.shape == slow.shape == (len(yaw), len(y_m), len(x_m))
+    scale = np.abs(match_values(local, 0.5)).sum()
+    assert np.abs(fast - slow).max() <= 1e-6 * scale
+    assert np.abs(slow).max() > 0.1 * scale  # not a trivially empty comparison
+    beta = 2.0
+    expected = np.exp(beta * (slow - slow.max()))
+    expected /= expected.sum()
+    np.testing.assert_allclose(normalise(fast, beta), expected, rtol=1e-4, atol=1e-12)
+
+
+def test_exactness_holds_on_a_structured_scene_at_one_degree(room: tuple[Band, object]) -> None:
+    global_, scene = room
+    rng = np.random.default_rng(3)
+    local = local_view(scene, np.array([4.03, 2.51, 0.6]), 1.2, 0.1, rng, noise=0.1)
+    window = (3.0, 5.0, 1.8, 3.2)
+    x_m, y_m, _ = pose_lattice(local, global_, window)
+    yaw = yaw_lattice(math.radians(1.0))
+    fast = correlate_all(local, global_, x_m, y_m, yaw, 0.5, workers=1)
+    slow = score_poses_loop(local, global_, x_m, y_m, yaw, 0.5)
+    assert np.abs(fast - slow).max() <= 1e-6 * np.abs(match_values(local, 0.5)).sum()
+
+
+def test_lattice_lands_local_cell_centres_on_global_centres() -> None:
+    rng = np.random.default_rng(0)
+    local = random_band(rng, (4, 4), [-0.23, 0.41])
+    global_ = random_band(rng, (10, 10), [0.05, -0.02])
+    x_m, y_m, _ = pose_lattice(local, global_)
+    # At θ = 0, a local centre (−0.23 + 0.05) + x lands at a global centre 0.05 + 0.1·(i + ½).
+    offsets = (x_m + (-0.23 + 0.05) - 0.05) / 0.1 - 0.5
+    assert np.allclose(offsets, np.round(offsets))
+    assert len(x_m) == len(y_m) == 10
+
+
+# -- the peak ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "truth",
+    [
+        [4.03, 2.46, math.radians(0.4)],
+        [5.47, 3.12, math.radians(61.7)],
+        [3.61, 2.78, math.radians(-133.3)],
+    ],
+)
+def test_refinement_recovers_sub_cell_shifts(room: tuple[Band, object], truth: list[float]) -> None:
+    global_, scene = room
+    truth_pose = np.array(truth)
+    local = local_view(scene, truth_pose, 4.0, 0.1, np.random.default_rng(1))
+    result = search(local, global_, SearchParams(), (2.5, 7.0, 1.0, 4.5))
+    lattice_m, lattice_deg = pose_error(result.lattice_pose, truth_pose)
+    error_m, error_deg = pose_error(result.pose, truth_pose)
+    # The lattice is off by up to a cell and a step; the refinement lands within a fraction.
+    # (The scene is rasterised at 1/3 of a cell: near 0° the two grids alias, hence 0.4°.)
+    assert 0.02 < lattice_m < 0.1
+    assert lattice_deg <= 1.0 + 1e-9
+    assert error_m < min(0.025, lattice_m / 2)
+    assert error_deg < 0.4
+
+
+def test_refine_peak_finds_the_vertex_of_a_quadratic() -> None:
+    t, y, x = np.meshgrid(np.arange(7), np.arange(6), np.arange(8), indexing="ij")
+    centre = np.array([3.3, 2.6, 3.8])  # (x, y, t)
+    d = np.stack([x - centre[0], y - centre[1], t - centre[2]], -1)
+    H = np.array([[2.0, 0.3, 0.1], [0.3, 1.5, -0.2], [0.1, -0.2, 1.0]])
+    scores = -np.einsum("...i,ij,...j->...", d, H, d)
+    step = refine_peak(scores, (4, 3, 3), yaw_wraps=False)
+    np.testing.assert_allclose(np.array([3, 3, 4]) + step, centre, atol=1e-9)
+
+
+def test_peak_ratio_and_covariance_agree_with_posepdf() -> None:
+    rng = np.random.default_rng(5)
+    local = random_band(rng, (7, 7), [-0.3, -0.3])
+    global_ = random_band(rng, (25, 25), [0.0, 0.0])
+    params = SearchParams(beta=0.5, angular_resolution_rad=math.radians(5.0), peak_radius_m=0.3)
+    result = search(local, global_, params)
+    pdf = result.pdf
+    assert isinstance(pdf, PosePdf)
+    assert pdf.best_index() == result.best_index
+    radii = (params.peak_radius_m, params.peak_radius_rad)
+    assert result.peak_ratio == pytest.approx(pdf.peak_ratio(*radii), rel=1e-4)
+    np.testing.assert_allclose(result.covariance, pdf.covariance(*radii), rtol=1e-4, atol=1e-12)
+    assert result.prob.sum() == pytest.approx(1.0, abs=1e-5)
+
+
+def test_dominance_is_low_in_a_symmetric_corridor() -> None:
+    scene = corridor(20.0, 2.4)
+    global_ = rasterise(scene, np.zeros(3), (0.0, -0.5), (34, 200), 0.1)
+    truth = np.array([9.0, 1.2, 0.3])
+    local = local_view(scene, truth, 3.0, 0.1, np.random.default_rng(2), noise=0.05)
+    result = search(local, global_, SearchParams())
+    assert result.peak_ratio < 1.5
+    # The PDF spreads along the corridor and over both directions.
+    marginal_x = result.prob.sum(axis=(0, 1))
+    assert (marginal_x > 1e-3 * marginal_x.max()).sum() > 50
+    yaw_mass = result.prob.sum(axis=(1, 2))
+    near = np.abs((result.yaw_rad - truth[2] + math.pi) % (2 * math.pi) - math.pi) < 0.2
+    flipped = np.abs((result.yaw_rad - truth[2]) % (2 * math.pi) - math.pi) < 0.2
+    assert yaw_mass[near].sum() > 0.1
+    assert yaw_mass[flipped].sum() > 0.1
+
+
+def test_dominance_is_high_in_a_distinctive_room(room: tuple[Band, object]) -> None:
+    global_, scene = room
+    truth = np.array([4.6, 3.0, math.radians(140.0)])
+    rng = np.random.default_rng(4)
+    local = local_view(scene, truth, 3.5, 0.1, rng, noise=0.1, drop_fraction=0.2)
+    result = search(local, global_, SearchParams())
+    assert result.peak_ratio > 1e3
+    error_m, error_deg = pose_error(result.pose, truth)
+    assert error_m < 0.05
+    assert error_deg < 0.5
+    sigma = np.sqrt(np.diag(result.covariance))
+    assert 0.02 < sigma[0] < 0.2
+    assert 0.02 < sigma[1] < 0.2
+
+
+# -- windowed search ---------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def building() -> tuple[Band, object]:
+    scene = random_building(np.random.default_rng(11), 16.0)
+    return rasterise(scene, np.zeros(3), (0.0, 0.0), (160, 160), 0.1), scene
+
+
+def test_windowed_search_stops_at_the_first_window_with_a_good_prior(
+    building: tuple[Band, object],
+) -> None:
+    global_, scene = building
+    truth = np.array([7.2, 8.9, 1.1])
+    local = local_view(scene, truth, 5.0, 0.1, np.random.default_rng(0), noise=0.1)
+    out = windowed_search(local, global_, SearchParams(), truth[:2] + 0.4, 2.0, 40.0)
+    assert len(out.steps) == 1
+    assert out.dominant
+    assert out.result.x_m.size == out.result.y_m.size == 20
+    assert pose_error(out.result.pose, truth)[0] < 0.05
+
+
+def test_windowed_search_grows_until_the_peak_is_dominant(building: tuple[Band, object]) -> None:
+    global_, scene = building
+    truth = np.array([5.1, 11.3, -2.0])
+    local = local_view(scene, truth, 5.0, 0.1, np.random.default_rng(0), noise=0.1)
+    prior = truth[:2] + np.array([3.1, -2.6])  # 4 m off: the first windows miss the truth
+    out = windowed_search(local, global_, SearchParams(), prior, 1.0, 40.0)
+    sides = [step.side_m for step in out.steps]
+    assert sides[:4] == [1.0, 2.0, 4.0, 8.0]
+    assert len(sides) >= 4
+    assert not any(step.peak_ratio >= 2.0 and not step.on_edge for step in out.steps[:-1])
+    assert out.dominant
+    assert not out.steps[-1].covers_map
+    error_m, error_deg = pose_error(out.result.pose, truth)
+    assert error_m < 0.05
+    assert error_deg < 0.5
+
+
+def test_windowed_search_stops_when_the_map_is_covered() -> None:
+    scene = corridor(12.0, 2.4)
+    global_ = rasterise(scene, np.zeros(3), (0.0, -0.5), (34, 120), 0.1)
+    local = local_view(scene, np.array([6.0, 1.2, 0.0]), 2.0, 0.1, np.random.default_rng(1))
+    out = windowed_search(local, global_, SearchParams(), (6.0, 1.2), 2.0, 100.0)
+    assert [step.side_m for step in out.steps] == [2.0, 4.0, 8.0, 16.0]
+    assert out.steps[-1].covers_map
+    assert not out.dominant
+    assert len(out.result.x_m) == 120
+
+
+# -- bad inputs --------------------------------------------------------------------------------
+
+
+def test_empty_scan_grid_is_rejected() -> None:
+    rng = np.random.default_rng(0)
+    empty = Band(np.zeros((5, 5)), np.zeros((5, 5), bool), np.zeros(2), 0.1)
+    with pytest.raises(EstimationError, match="scan grid has no known cell"):
+        search(empty, random_band(rng, (10, 10), [0, 0]), SearchParams())
+    unknown_map = Band(np.zeros((10, 10)), np.zeros((10, 10), bool), np.zeros(2), 0.1)
+    with pytest.raises(EstimationError, match="map grid has no known cell"):
+        search(random_band(rng, (5, 5), [0, 0]), unknown_map, SearchParams())
+
+
+def test_mismatched_resolution_is_rejected() -> None:
+    rng = np.random.default_rng(0)
+    local = Band(np.zeros((5, 5)), np.ones((5, 5), bool), np.zeros(2), 0.05)
+    with pytest.raises(EstimationError, match=r"resolution 0\.05 m differs from the map's 0\.1 m"):
+        search(local, random_band(rng, (10, 10), [0, 0]), SearchParams())
+
+
+def test_window_outside_the_map_is_rejected() -> None:
+    rng = np.random.default_rng(0)
+    local, global_ = random_band(rng, (5, 5), [0, 0]), random_band(rng, (10, 10), [0, 0])
+    with pytest.raises(EstimationError, match="lies outside the map"):
+        search(local, global_, SearchParams(), (5.0, 6.0, 0.0, 1.0))
+    with pytest.raises(EstimationError, match="lies outside the map"):
+        windowed_search(local, global_, SearchParams(), (30.0, 30.0), 2.0, 4.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "pattern"),
+    [
+        ({"angular_resolution_rad": math.radians(7.0)}, "must divide 360"),
+        ({"beta": 0.0}, "beta must be a positive number"),
+        ({"free_weight": -1.0}, "free_weight must be >= 0"),
+        ({"dominance_ratio": 0.5}, "dominance_ratio must be >= 1"),
+    ],
+)
+def test_bad_parameters_are_rejected(kwargs: dict[str, float], pattern: str) -> None:
+    rng = np.random.default_rng(0)
+    local, global_ = random_band(rng, (5, 5), [0, 0]), random_band(rng, (9, 9), [0, 0])
+
+    def attempt() -> None:
+        search(local, global_, SearchParams(**kwargs))  # type: ignore[arg-type]
+
+    with pytest.raises(EstimationError, match=pattern):
+        attempt()
+
+
+def test_occupancy_outside_the_unit_interval_is_rejected() -> None:
+    rng = np.random.default_rng(0)
+    bad = Band(np.full((5, 5), 1.5), np.ones((5, 5), bool), np.zeros(2), 0.1)
+    with pytest.raises(EstimationError, match=r"within \[0, 1\]"):
+        search(bad, random_band(rng, (9, 9), [0, 0]), SearchParams())
