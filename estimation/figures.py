@@ -262,13 +262,16 @@ def render_trajectories(
 
 
 def render_map_cubes(grid: Any, path: Path | str, *, threshold: float = 0.9,
+                     z_range_m: tuple[float, float] = (0.05, 2.9),
                      max_cubes: int = 60_000) -> Path:  # fmt: skip
-    """Occupied cells (P > ``threshold``) as cubes seen from above at an angle (paper Fig. 5a)."""
+    """Occupied cells (P > ``threshold``) between floor and ceiling as cubes seen from above at an
+    angle (the paper's Fig. 5a draws the space 1–2.9 m above the floor)."""
     from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the 3d projection
 
     path = Path(path)
     cells, _ = grid.occupied(threshold)
     centers = grid.cell_centers(cells) if len(cells) else np.zeros((0, 3))
+    centers = centers[(centers[:, 2] >= z_range_m[0]) & (centers[:, 2] < z_range_m[1])]
     if len(centers) > max_cubes:
         centers = centers[np.random.default_rng(0).choice(len(centers), max_cubes, replace=False)]
     figure = _new_figure(9.0, 6.5)
@@ -283,6 +286,9 @@ def render_map_cubes(grid: Any, path: Path | str, *, threshold: float = 0.9,
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    ax.set_title(f"occupied cells (P > {threshold:g}): {len(cells):,}")
+    ax.set_title(
+        f"occupied cells (P > {threshold:g}) at {z_range_m[0]:g}–{z_range_m[1]:g} m: "
+        f"{len(centers):,}"
+    )
     _save(figure, path)
     return path
