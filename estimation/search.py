@@ -78,6 +78,8 @@ _SNAP = 1e-6
 #: centres exactly on a boundary (e.g. on the diagonal at 45°) fall the same way whatever the
 #: float round-off.
 _EDGE = 1e-9
+#: exp(−x) of float32 is subnormal beyond this x.
+_NORMAL_FLOOR = 87.0
 #: Zero cells around the global values for the spline refinement.
 _PAD = 3
 #: Rotated centres this close to a boundary are ties: the quarter-turn shortcut is not used.
@@ -447,35 +449,34 @@ def _plan(
     )
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Slices:
-    """Per-rotation PDF bookkeeping filled while the scores are hot in cache: ``prob[t]`` =
-    exp(β·(score − maxima[t])), ``sums[t]`` its sum; the slices are put on one scale later."""
+    """Per rotation t, filled while its scores are hot in cache: the maximum score, and (when
+    β is given) Σ exp(β·(score − maximum)) over the slice."""
 
-    beta: float
-    prob: np.ndarray | None  # (T, Y, X) float32; None: only the maxima are kept
-    maxima: np.ndarray  # (T,) float64
-    sums: np.ndarray  # (T,) float64
+    beta: float | None
+    maxima: np.ndarray  # (T,)
+    sums: np.ndarray  # (T,)
 
-    def fill(self, t: int, scores: np.ndarray) -> None:
-        top = float(scores.max())
-        if self.prob is None:
-            self.maxima[t] = top
-            return
-        target = self.prob[t]
-        np.subtract(scores, np.float32(top), out=target)
-        target *= np.float32(self.beta)
-        np.exp(target, out=target)
+    def record(self, t: int, scores: np.ndarray, scratch: np.ndarray) -> None:
+        top = scores.max()
         self.maxima[t] = top
-        self.sums[t] = float(target.sum(dtype=np.float64))
+        if self.beta is not None:
+            np.subtract(scores, top, out=scratch)
+            scratch *= np.float32(self.beta)
+            np.maximum(scratch, np.float32(-_NORMAL_FLOOR), out=scratch)
+            np.exp(scratch, out=scratch)
+            self.sums[t] = scratch.sum(dtype=np.float64)
 
 
 def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices) -> None:
-    """Fill ``out[t]`` (and ``slices``) for every rotation served by the base rotations
+    """Fill ``out[t]`` and ``slices`` for every rotation served by the base rotations
     ``plan.base[chunk]``."""
     cells, extent = plan.cells, plan.extent
     step = len(plan.rotations) // 4
     splat = np.zeros((extent, extent), dtype=np.float32)
+    products = [np.empty((rows, cols // 2 + 1), dtype=np.complex64) for rows, cols in plan.shapes]
+    scratch = np.empty(out.shape[1:], dtype=np.float32)
 
     def spectrum(t: int, parity: int) -> tuple[np.ndarray, bool]:
         splat.fill(0.0)
@@ -488,14 +489,16 @@ def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices)
     def emit(t: int, turn: _Turn, local_spectrum: np.ndarray, b: np.ndarray) -> None:
         if turn.spectrum is None:
             out[t] = 0.0
-            slices.fill(t, out[t])
+            slices.record(t, out[t], scratch)
             return
         x0, y0 = b - turn.b_min
-        # Inverse along y, then along x only for the rows of the window.
-        half = sfft.ifft(local_spectrum * turn.spectrum, axis=0)[y0 : y0 + turn.size[1]]
+        product = products[turn.parity]
+        np.multiply(local_spectrum, turn.spectrum, out=product)
+        # Inverse along y (in place), then along x only for the rows of the window.
+        half = sfft.ifft(product, axis=0, overwrite_x=True)[y0 : y0 + turn.size[1]]
         corr = sfft.irfft(half, n=plan.shapes[turn.parity][1], axis=1, overwrite_x=True)
         out[t] = turn.view(corr[:, x0 : x0 + turn.size[0]])
-        slices.fill(t, out[t])
+        slices.record(t, out[t], scratch)
 
     for j in plan.base[chunk]:
         j = int(j)
@@ -523,10 +526,11 @@ def _correlate_lattice(
     y_m: np.ndarray,
     yaw_rad: np.ndarray,
     free_weight: float,
-    beta: float | None,
     workers: int,
+    beta: float | None = None,
 ) -> tuple[np.ndarray, _Slices]:
-    """Scores (T, Y, X) and the per-rotation PDF bookkeeping (maxima only when β is None)."""
+    """float32 scores (T, Y, X) and each rotation's maximum (and, given β, its sum of
+    exp(β·(score − maximum)))."""
     r = _check_pair(local, global_)
     cells = _local_cells(local, free_weight)
     values = match_values(global_, free_weight)
@@ -541,8 +545,7 @@ def _correlate_lattice(
     plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
     shape = (len(yaw_rad), len(y_m), len(x_m))
     out = np.empty(shape, dtype=np.float32)
-    prob = None if beta is None else np.empty(shape, np.float32)
-    slices = _Slices(beta or 0.0, prob, np.empty(shape[0]), np.empty(shape[0]))
+    slices = _Slices(beta, np.empty(shape[0]), np.zeros(shape[0]))
     chunks = [c for c in np.array_split(np.arange(len(plan.base)), max(1, workers)) if len(c)]
     if len(chunks) == 1:
         _correlate(plan, chunks[0], out, slices)
@@ -566,21 +569,46 @@ def correlate_all(
 
     Equal to ``score_poses_loop`` up to float32 round-off.
     """
-    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, free_weight, None, workers)[0]
+    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, free_weight, workers)[0]
 
 
-def _normalise_slices(slices: _Slices) -> np.ndarray:
-    """Put the per-rotation exponentials on one scale and normalise, in place."""
-    assert slices.prob is not None
-    top = slices.maxima.max()
-    factors = np.exp(slices.beta * (slices.maxima - top))
-    total = float((factors * slices.sums).sum())
-    for t, factor in enumerate(factors / total):
-        if factor * slices.sums[t] * total < 1e-30:
-            slices.prob[t] = 0.0  # below what float32 keeps of a PDF that sums to 1
-        else:
-            slices.prob[t] *= np.float32(factor)
-    return slices.prob
+def _run(work: Callable[[np.ndarray], None], items: np.ndarray, workers: int) -> None:
+    chunks = [c for c in np.array_split(items, max(1, workers)) if len(c)]
+    if len(chunks) <= 1:
+        for chunk in chunks:
+            work(chunk)
+        return
+    with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
+        for future in [pool.submit(work, c) for c in chunks]:
+            future.result()
+
+
+def _pdf(scores: np.ndarray, slices: _Slices, workers: int = 1) -> np.ndarray:
+    """float32 probabilities exp(β·(score − max) − log Z), Z = Σ exp(β·(score − max)), from
+    the scores and their per-rotation maxima and sums: one pass writing the result. Rotations
+    whose best cell lies more than float32's normal range (e^−87) below the peak hold exactly 0
+    and are never computed (their pages are never touched); in the others, cells are floored
+    at e^−87 — float32's exp is ten times slower where it returns subnormal numbers."""
+    assert slices.beta is not None
+    beta = slices.beta
+    top = float(slices.maxima.max())
+    relative = beta * (slices.maxima - top)
+    live = np.flatnonzero(relative > -_NORMAL_FLOOR)
+    log_total = math.log(float((np.exp(relative[live]) * slices.sums[live]).sum()))
+    prob = np.zeros(scores.shape, dtype=np.float32)
+    b = np.float32(beta)
+    shift = np.float32(top + log_total / beta)
+
+    def exponentiate(ts: np.ndarray) -> None:
+        for t in ts:
+            target = prob[t]
+            np.subtract(scores[t], shift, out=target)
+            target *= b
+            np.maximum(target, np.float32(-_NORMAL_FLOOR), out=target)
+            np.exp(target, out=target)
+
+    _run(exponentiate, live, workers)
+    return prob
 
 
 # -- the peak: refinement, dominance, covariance -----------------------------------------------
@@ -899,10 +927,11 @@ class SearchResult:
 def normalise(scores: np.ndarray, beta: float) -> np.ndarray:
     """float32 probabilities ∝ exp(β·(score − max)), summing to 1."""
     scores = np.asarray(scores, dtype=np.float32)
-    slices = _Slices(beta, np.empty_like(scores), np.empty(len(scores)), np.empty(len(scores)))
+    slices = _Slices(beta, np.empty(len(scores)), np.zeros(len(scores)))
+    scratch = np.empty(scores.shape[1:], dtype=np.float32)
     for t in range(len(scores)):
-        slices.fill(t, scores[t])
-    return _normalise_slices(slices)
+        slices.record(t, scores[t], scratch)
+    return _pdf(scores, slices)
 
 
 def result_from_scores(
@@ -922,13 +951,12 @@ def result_from_scores(
     within one lattice step of it (``refine_pose``).
     """
     scores = np.asarray(scores, dtype=np.float32)
-    if slices is None:
-        slices = _Slices(
-            params.beta, np.empty_like(scores), np.empty(len(scores)), np.empty(len(scores))
-        )
+    if slices is None or slices.beta != params.beta:
+        slices = _Slices(params.beta, np.empty(len(scores)), np.zeros(len(scores)))
+        scratch = np.empty(scores.shape[1:], dtype=np.float32)
         for i in range(len(scores)):
-            slices.fill(i, scores[i])
-    maxima = slices.maxima.copy()
+            slices.record(i, scores[i], scratch)
+    maxima = slices.maxima
     t = int(np.argmax(maxima))
     y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
     best = float(scores[t, y, x])
@@ -945,7 +973,7 @@ def result_from_scores(
     with np.errstate(over="ignore"):
         ratio = float(np.exp(params.beta * (best - elsewhere)))
     covariance = peak_covariance(scores, (t, y, x), x_m, y_m, yaw_rad, params.beta, *radii)
-    prob = _normalise_slices(slices)
+    prob = _pdf(scores, slices, params.thread_count())
     return SearchResult(
         x_m=x_m,
         y_m=y_m,
@@ -979,7 +1007,7 @@ def search(
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
     scores, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.beta, params.thread_count()
+        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.thread_count(), params.beta
     )
     return result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices)
 
@@ -996,7 +1024,7 @@ def best_pose(
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
     scores, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.free_weight, None, params.thread_count()
+        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.thread_count()
     )
     t = int(np.argmax(slices.maxima))
     y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
