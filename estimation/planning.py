@@ -131,12 +131,16 @@ class _Geometry:
         bearing = abs(math.remainder(math.atan2(delta[1], delta[0]) - observer[2], 2 * math.pi))
         return self.min_bearing <= bearing <= self.max_bearing
 
-    def beacons_see_each_other(self, a: np.ndarray, b: np.ndarray) -> bool:
-        start = np.array([*self.beacon(a), self.beacon_z])
-        end = np.array([*self.beacon(b), self.beacon_z])
+    def sees_beacon(self, observer: np.ndarray, observed: np.ndarray) -> bool:
+        """A clear 3D line from the observer's scanner to the other robot's beacon (centre)."""
+        start = np.array([*self.scanner(observer), self.scanner_z])
+        end = np.array([*self.beacon(observed), self.beacon_z])
         distance = float(np.linalg.norm(end - start))
         hits = self.scene.cast(start[None], (end - start)[None], normals=False)
         return bool(hits.range_m[0] > distance - 0.15)
+
+    def beacons_see_each_other(self, a: np.ndarray, b: np.ndarray) -> bool:
+        return self.sees_beacon(a, b) and self.sees_beacon(b, a)
 
     def mutual(self, reference: np.ndarray, mapper: np.ndarray, band: tuple[float, float]) -> bool:
         distance = float(np.linalg.norm(self.beacon(reference) - self.beacon(mapper)))
