@@ -99,6 +99,8 @@ def test_refusion_fuses_every_scan() -> None:
     assert result["points"] == 6000
     assert result["no_return_beams"] > 0
     assert result["seconds"] > 0
+    assert result["cpu_seconds"] > 0
+    assert result["repeats"] == 2
     assert result["known_cells"] > 10_000
     assert result["extent_m"][2] <= 3.2  # floor to ceiling of the 3 m hall, no leaks
 
