@@ -83,13 +83,13 @@ def run_search_benchmark(
     rows = np.arange(0, len(result.y_m), peer_row_stride)
     yaws, ys = result.yaw_rad[picks], result.y_m[rows]
     begin = time.perf_counter()
-    peer_scores = score_poses_loop(local, global_, result.x_m, ys, yaws, params.free_weight)
+    peer_scores = score_poses_loop(local, global_, result.x_m, ys, yaws, params.metric)
     peer_measured = time.perf_counter() - begin
     poses = result.scores.size
     peer_poses = peer_scores.size
     peer_seconds = peer_measured * poses / peer_poses
     ours = result.scores[np.ix_(picks, rows, np.arange(len(result.x_m)))]
-    scale = float(np.abs(match_values(local, params.free_weight)).sum())
+    scale = float(np.abs(match_values(local, params.metric)).sum())
 
     median = statistics.median(seconds)
     return {
@@ -105,7 +105,7 @@ def run_search_benchmark(
         "peer_rotations_timed": len(yaws),
         "peer_max_score_difference": float(np.abs(ours - peer_scores).max()) / scale,
         "map_cells": [cells, cells],
-        "local_known_cells": int(np.count_nonzero(match_values(local, params.free_weight))),
+        "local_known_cells": int(np.count_nonzero(match_values(local, params.metric))),
         "poses": poses,
         "rotations": len(result.yaw_rad),
         "resolution_m": resolution_m,

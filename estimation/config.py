@@ -245,6 +245,9 @@ class SearchConfig(_Section):
     peak_radius_m: float = Field(0.5, gt=0, description="neighbourhood of the peak")
     peak_radius_deg: float = Field(10.0, gt=0)
     free_weight: float = Field(0.5, ge=0, description="weight of free-space agreement")
+    occupied_level: float = Field(
+        0.1, gt=0, lt=1, description="band occupancy from which a cell is occupied evidence"
+    )
     beta: float = Field(0.05, gt=0, description="PDF ∝ exp(beta · score), calibrated")
 
     @model_validator(mode="after")

@@ -30,6 +30,7 @@ def search_params(config: SearchConfig, workers: int = 0) -> SearchParams:
     return SearchParams(
         angular_resolution_rad=config.angular_resolution_rad,
         free_weight=config.free_weight,
+        occupied_level=config.occupied_level,
         beta=config.beta,
         peak_radius_m=config.peak_radius_m,
         peak_radius_rad=math.radians(config.peak_radius_deg),

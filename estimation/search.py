@@ -1,15 +1,20 @@
 """Exhaustive (x, y, θ) search of a local 2D band grid against a global one (DESIGN §7, paper §2.2).
 
-**Metric.** Each known cell of a band with occupancy p gets the value
+**Metric.** Each known cell of a band with occupancy p (the share of the band's layers that
+are occupied in its column) gets the value
 
-    v(p) = 2p − 1              for p ≥ ½   (occupied evidence, up to +1)
-    v(p) = w · (2p − 1)        for p < ½   (free evidence, down to −w; w = ``free_weight``)
+    v(p) = min(1, (p − τ)/τ)    for p ≥ τ   (occupied evidence, +1 from 2τ up)
+    v(p) = w · (p − τ)/τ        for p < τ   (free evidence, down to −w at p = 0)
 
-and unknown cells get 0. The score of a pose T (of the local grid's frame in the global grid's
-frame) is the correlation ``score(T) = Σ_k v_L(k) · v_G(cell of the global grid containing T·c_k)``
+with τ = ``occupied_level`` (default 0.1: a column with any occupied layer out of the ceiling
+band's six is occupied evidence) and w = ``free_weight``; unknown cells get 0. The score of a
+pose T (of the local grid's frame in the global grid's frame) is the correlation
+
+    score(T) = Σ_k v_L(k) · v_G(cell of the global grid containing T·c_k)
+
 over the known local cells k with centres c_k: occupied on occupied and free on free agree
 (positive), occupied on free disagree (negative), and an unknown cell on either side — or a
-local cell that falls off the global grid — counts nothing. For binary cells and w = 1, this is
+local cell that falls off the global grid — counts nothing. For binary cells (v = ±1), this is
 the log-likelihood of the local grid given the map and the pose, up to a constant, when each cell
 agrees with the map with probability q: log q or log(1 − q) per cell is
 ½·log(q(1 − q)) + ½·logit(q)·v_L·v_G. The pose PDF is therefore
@@ -52,6 +57,7 @@ from estimation.posepdf import PosePdf
 from mapping.band import Band
 
 __all__ = [
+    "Metric",
     "SearchParams",
     "SearchResult",
     "WindowStep",
@@ -90,12 +96,29 @@ _QUARTER = np.array([[0, -1], [1, 0]], dtype=np.int64)
 
 
 @dataclass(frozen=True)
+class Metric:
+    """How band occupancy becomes the cell values the score correlates (see the module)."""
+
+    free_weight: float = 0.5
+    occupied_level: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.free_weight) and self.free_weight >= 0):
+            raise EstimationError(f"search free_weight must be >= 0, got {self.free_weight!r}")
+        if not 0 < self.occupied_level < 1:
+            raise EstimationError(
+                f"search occupied_level must lie in (0, 1), got {self.occupied_level!r}"
+            )
+
+
+@dataclass(frozen=True)
 class SearchParams:
     """Parameters of a search. Names follow the ``search`` section of the configuration; angles
     in radians here (degrees in the configuration)."""
 
     angular_resolution_rad: float = math.radians(1.0)
     free_weight: float = 0.5
+    occupied_level: float = 0.1
     beta: float = 0.05
     peak_radius_m: float = 0.5
     peak_radius_rad: float = math.radians(10.0)
@@ -107,14 +130,17 @@ class SearchParams:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise EstimationError(f"search {name} must be a positive number, got {value!r}")
-        if not (math.isfinite(self.free_weight) and self.free_weight >= 0):
-            raise EstimationError(f"search free_weight must be >= 0, got {self.free_weight!r}")
+        Metric(self.free_weight, self.occupied_level)  # validates them
         if not self.dominance_ratio >= 1:
             raise EstimationError(
                 f"search dominance_ratio must be >= 1, got {self.dominance_ratio!r}"
             )
         if self.workers < 0:
             raise EstimationError(f"search workers must be >= 0, got {self.workers}")
+
+    @property
+    def metric(self) -> Metric:
+        return Metric(self.free_weight, self.occupied_level)
 
     def thread_count(self) -> int:
         return self.workers or min(4, os.cpu_count() or 1)
@@ -123,18 +149,20 @@ class SearchParams:
 # -- inputs ------------------------------------------------------------------------------------
 
 
-def match_values(band: Band, free_weight: float) -> np.ndarray:
-    """(H, W) float64 cell values of the metric: 2p − 1 on occupied evidence,
-    ``free_weight``·(2p − 1) on free evidence, 0 on unknown cells. EstimationError on
-    occupancy outside [0, 1] or NaN on a known cell."""
+def match_values(band: Band, metric: Metric) -> np.ndarray:
+    """(H, W) float64 cell values of the metric: occupied evidence up to +1, free evidence down
+    to −``free_weight``, 0 on unknown cells. EstimationError on occupancy outside [0, 1] or NaN
+    on a known cell."""
     occupancy = np.asarray(band.occupancy, dtype=np.float64)
     known = np.asarray(band.known, dtype=bool)
     if known.any():
         p = occupancy[known]
         if not np.isfinite(p).all() or p.min() < 0.0 or p.max() > 1.0:
             raise EstimationError("band occupancy must lie within [0, 1] on known cells")
-    v = 2.0 * np.where(known, occupancy, 0.5) - 1.0
-    return np.asarray(np.where(v < 0.0, free_weight * v, v))
+    level = metric.occupied_level
+    excess = (np.where(known, occupancy, level) - level) / level
+    v = np.where(excess < 0.0, metric.free_weight * excess, np.minimum(excess, 1.0))
+    return np.asarray(v)
 
 
 def yaw_lattice(angular_resolution_rad: float) -> np.ndarray:
@@ -172,8 +200,8 @@ class _Cells:
     w: np.ndarray  # (K,) float64, non-zero
 
 
-def _local_cells(local: Band, free_weight: float) -> _Cells:
-    values = match_values(local, free_weight)
+def _local_cells(local: Band, metric: Metric) -> _Cells:
+    values = match_values(local, metric)
     rows, cols = np.nonzero(values)
     if len(rows) == 0:
         raise EstimationError("scan grid has no known cell with occupied or free evidence")
@@ -227,7 +255,7 @@ def score_poses_loop(
     x_m: np.ndarray,
     y_m: np.ndarray,
     yaw_rad: np.ndarray,
-    free_weight: float,
+    metric: Metric,
     *,
     progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
@@ -237,9 +265,9 @@ def score_poses_loop(
     ``progress`` is called with the index of each rotation once it is done.
     """
     r = _check_pair(local, global_)
-    cells = _local_cells(local, free_weight)
+    cells = _local_cells(local, metric)
     centres = cells.u * r
-    values = match_values(global_, free_weight)
+    values = match_values(global_, metric)
     rows, cols = values.shape
     origin = np.asarray(global_.lower_xy, dtype=float)
     scores = np.zeros((len(yaw_rad), len(y_m), len(x_m)))
@@ -525,15 +553,15 @@ def _correlate_lattice(
     x_m: np.ndarray,
     y_m: np.ndarray,
     yaw_rad: np.ndarray,
-    free_weight: float,
+    metric: Metric,
     workers: int,
     beta: float | None = None,
 ) -> tuple[np.ndarray, _Slices]:
     """float32 scores (T, Y, X) and each rotation's maximum (and, given β, its sum of
     exp(β·(score − maximum)))."""
     r = _check_pair(local, global_)
-    cells = _local_cells(local, free_weight)
-    values = match_values(global_, free_weight)
+    cells = _local_cells(local, metric)
+    values = match_values(global_, metric)
     origin = np.asarray(global_.lower_xy, dtype=float)
     s = _frac(-np.asarray(local.lower_xy, dtype=float) / r)
     m_lo = np.array(
@@ -562,14 +590,14 @@ def correlate_all(
     x_m: np.ndarray,
     y_m: np.ndarray,
     yaw_rad: np.ndarray,
-    free_weight: float,
+    metric: Metric,
     workers: int = 1,
 ) -> np.ndarray:
     """float32 scores (T, Y, X) of every pose of the lattice ``pose_lattice`` gives, by FFT.
 
     Equal to ``score_poses_loop`` up to float32 round-off.
     """
-    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, free_weight, workers)[0]
+    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, metric, workers)[0]
 
 
 def _run(work: Callable[[np.ndarray], None], items: np.ndarray, workers: int) -> None:
@@ -843,7 +871,7 @@ def refine_pose(
     local: Band,
     global_: Band,
     start: np.ndarray,
-    free_weight: float,
+    metric: Metric,
     bounds: np.ndarray,
 ) -> np.ndarray:
     """Maximise the score with the global values interpolated by a cubic B-spline, from
@@ -854,12 +882,12 @@ def refine_pose(
     from scipy.optimize import minimize
 
     r = _check_pair(local, global_)
-    cells = _local_cells(local, free_weight)
+    cells = _local_cells(local, metric)
     centres = cells.u * r
-    values = np.pad(match_values(global_, free_weight), _PAD)
+    values = np.pad(match_values(global_, metric), _PAD)
     coefficients = spline_filter(values, order=3, mode="mirror")
     origin = np.asarray(global_.lower_xy, dtype=float)
-    # Scale the variables so that one lattice step is one unit along each.
+    # Scale the variables so that the bounds are ±1 along each.
     scale = np.maximum(bounds[:, 1] - bounds[:, 0], 1e-12) / 2.0
     centre = bounds.mean(axis=1)
     gradient = np.zeros(3)
@@ -947,8 +975,9 @@ def result_from_scores(
     """Best pose, refinement, PDF, covariance and dominance of a score lattice (T, Y, X).
 
     The best lattice pose is refined by a quadratic fitted to the scores around it, then, when
-    the (local, global) ``grids`` are given, by maximising the bilinearly interpolated score
-    within one lattice step of it (``refine_pose``).
+    the (local, global) ``grids`` are given, by maximising the spline-interpolated score
+    within two lattice steps of it (``refine_pose``): near-flat peaks can put the best lattice
+    cell a step away from the one nearest the optimum.
     """
     scores = np.asarray(scores, dtype=np.float32)
     if slices is None or slices.beta != params.beta:
@@ -965,8 +994,8 @@ def result_from_scores(
     lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
     pose = lattice + delta * steps
     if grids is not None:
-        bounds = np.column_stack([lattice - steps, lattice + steps])
-        pose = refine_pose(grids[0], grids[1], pose, params.free_weight, bounds)
+        bounds = np.column_stack([lattice - 2 * steps, lattice + 2 * steps])
+        pose = refine_pose(grids[0], grids[1], pose, params.metric, bounds)
     pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
     radii = (params.peak_radius_m, params.peak_radius_rad)
     elsewhere = best_pose_outside(scores, (t, y, x), x_m, y_m, yaw_rad, *radii, maxima=maxima)
@@ -1007,7 +1036,7 @@ def search(
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
     scores, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.thread_count(), params.beta
+        local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count(), params.beta
     )
     return result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices)
 
@@ -1024,15 +1053,15 @@ def best_pose(
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
     scores, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.free_weight, params.thread_count()
+        local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count()
     )
     t = int(np.argmax(slices.maxima))
     y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
     steps = np.array(_steps(x_m, y_m, yaw_rad))
     lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
     pose = lattice + refine_peak(scores, (t, y, x), _wraps(yaw_rad)) * steps
-    bounds = np.column_stack([lattice - steps, lattice + steps])
-    pose = refine_pose(local, global_, pose, params.free_weight, bounds)
+    bounds = np.column_stack([lattice - 2 * steps, lattice + 2 * steps])
+    pose = refine_pose(local, global_, pose, params.metric, bounds)
     pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
     return pose, float(scores[t, y, x]), time.perf_counter() - started
 

@@ -10,6 +10,7 @@ import pytest
 from estimation.errors import EstimationError
 from estimation.posepdf import PosePdf
 from estimation.search import (
+    Metric,
     SearchParams,
     correlate_all,
     match_values,
@@ -29,6 +30,8 @@ from estimation.search_scenes import (
     rasterise,
 )
 from mapping.band import Band
+
+METRIC = Metric(free_weight=0.5, occupied_level=0.3)
 
 
 def random_band(rng: np.random.Generator, shape: tuple[int, int], origin: list[float]) -> Band:
@@ -74,10 +77,10 @@ def test_fast_search_equals_the_per_pose_loop(
     global_ = random_band(rng, (19, 24), [1.0, -2.0])
     x_m, y_m, _ = pose_lattice(local, global_, window)
     yaw = yaw_lattice(math.radians(step_deg))
-    fast = correlate_all(local, global_, x_m, y_m, yaw, 0.5, workers=2)
-    slow = score_poses_loop(local, global_, x_m, y_m, yaw, 0.5)
+    fast = correlate_all(local, global_, x_m, y_m, yaw, METRIC, workers=2)
+    slow = score_poses_loop(local, global_, x_m, y_m, yaw, METRIC)
     assert fast.shape == slow.shape == (len(yaw), len(y_m), len(x_m))
-    scale = np.abs(match_values(local, 0.5)).sum()
+    scale = np.abs(match_values(local, METRIC)).sum()
     assert np.abs(fast - slow).max() <= 1e-6 * scale
     assert np.abs(slow).max() > 0.1 * scale  # not a trivially empty comparison
     beta = 2.0
@@ -93,9 +96,9 @@ def test_exactness_holds_on_a_structured_scene_at_one_degree(room: tuple[Band, o
     window = (3.0, 5.0, 1.8, 3.2)
     x_m, y_m, _ = pose_lattice(local, global_, window)
     yaw = yaw_lattice(math.radians(1.0))
-    fast = correlate_all(local, global_, x_m, y_m, yaw, 0.5, workers=1)
-    slow = score_poses_loop(local, global_, x_m, y_m, yaw, 0.5)
-    assert np.abs(fast - slow).max() <= 1e-6 * np.abs(match_values(local, 0.5)).sum()
+    fast = correlate_all(local, global_, x_m, y_m, yaw, METRIC, workers=1)
+    slow = score_poses_loop(local, global_, x_m, y_m, yaw, METRIC)
+    assert np.abs(fast - slow).max() <= 1e-6 * np.abs(match_values(local, METRIC)).sum()
 
 
 def test_lattice_lands_local_cell_centres_on_global_centres() -> None:
@@ -127,11 +130,11 @@ def test_refinement_recovers_sub_cell_shifts(room: tuple[Band, object], truth: l
     result = search(local, global_, SearchParams(), (2.5, 7.0, 1.0, 4.5))
     lattice_m, lattice_deg = pose_error(result.lattice_pose, truth_pose)
     error_m, error_deg = pose_error(result.pose, truth_pose)
-    # The lattice is off by up to a cell and a step; the refinement lands within a fraction.
+    # The lattice is off by up to a cell or two; the refinement lands within a fraction.
     # (The scene is rasterised at 1/3 of a cell: near 0° the two grids alias, hence 0.4°.)
-    assert 0.02 < lattice_m < 0.1
-    assert lattice_deg <= 1.0 + 1e-9
-    assert error_m < min(0.025, lattice_m / 2)
+    assert 0.02 < lattice_m < 0.2
+    assert lattice_deg <= 2.0 + 1e-9
+    assert error_m < min(0.02, 0.6 * lattice_m)
     assert error_deg < 0.4
 
 
@@ -277,6 +280,7 @@ def test_window_outside_the_map_is_rejected() -> None:
         ({"angular_resolution_rad": math.radians(7.0)}, "must divide 360"),
         ({"beta": 0.0}, "beta must be a positive number"),
         ({"free_weight": -1.0}, "free_weight must be >= 0"),
+        ({"occupied_level": 1.0}, r"occupied_level must lie in \(0, 1\)"),
         ({"dominance_ratio": 0.5}, "dominance_ratio must be >= 1"),
     ],
 )
@@ -296,3 +300,11 @@ def test_occupancy_outside_the_unit_interval_is_rejected() -> None:
     bad = Band(np.full((5, 5), 1.5), np.ones((5, 5), bool), np.zeros(2), 0.1)
     with pytest.raises(EstimationError, match=r"within \[0, 1\]"):
         search(bad, random_band(rng, (9, 9), [0, 0]), SearchParams())
+
+
+def test_metric_values_free_and_occupied_evidence() -> None:
+    occupancy = np.array([[0.0, 0.05, 0.1, 0.15, 0.2, 0.9]])
+    known = np.array([[True, True, True, True, True, False]])
+    band = Band(occupancy, known, np.zeros(2), 0.1)
+    values = match_values(band, Metric(free_weight=0.4, occupied_level=0.1))
+    np.testing.assert_allclose(values, [[-0.4, -0.2, 0.0, 0.5, 1.0, 0.0]], atol=1e-12)
