@@ -170,6 +170,13 @@ class PosePdf:
         """The most probable pose. With ``refine``, one Newton step on the log-probability (a
         quadratic through the peak's 3×3×3 neighbourhood, cross terms included) places it between
         lattice points — exact for a Gaussian peak; the step is clipped to one cell."""
+        cache: dict[object, np.ndarray] = object.__getattribute__(self, "_cache")
+        cached = cache.get(("best", refine))
+        if cached is None:
+            cached = cache[("best", refine)] = self._best_pose(refine)
+        return cached.copy()
+
+    def _best_pose(self, refine: bool) -> np.ndarray:
         index = self.best_index()
         pose = self.pose_at(index)
         if not refine:
@@ -221,7 +228,7 @@ class PosePdf:
     def _peak(self, peak_radius_m: float, peak_radius_rad: float) -> _Peak:
         """The peak's neighbourhood (cells within the radii of the best cell), computed on the
         sub-box around the best cell only, and cached: PDFs of a full search are large."""
-        cache: dict[tuple[float, float], _Peak] = object.__getattribute__(self, "_cache")
+        cache: dict[object, _Peak] = object.__getattribute__(self, "_cache")
         cached = cache.get((peak_radius_m, peak_radius_rad))
         if cached is not None:
             return cached
@@ -280,7 +287,7 @@ class PosePdf:
         w = peak.weights / peak.weights.sum()
         d = peak.offsets
         centred = d - (w[:, None] * d).sum(axis=0)
-        cov = (w[:, None, None] * centred[:, :, None] * centred[:, None, :]).sum(axis=0)
+        cov = centred.T @ (w[:, None] * centred)
         cov += np.diag(np.square(self.steps)) / 12.0
         return np.asarray(0.5 * (cov + cov.T))
 

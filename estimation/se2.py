@@ -8,6 +8,8 @@ models unchanged. Everything is vectorised over leading axes; nothing here impor
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = [
@@ -33,8 +35,27 @@ def _split(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return pose[..., 0], pose[..., 1], pose[..., 2]
 
 
+def _one(pose: np.ndarray) -> tuple[float, float, float] | None:
+    """(x, y, yaw) as floats when ``pose`` is a single pose: the fast path for one event."""
+    if isinstance(pose, np.ndarray) and pose.shape == (3,):
+        return float(pose[0]), float(pose[1]), float(pose[2])
+    if isinstance(pose, list | tuple) and len(pose) == 3 and not isinstance(pose[0], list | tuple):
+        return float(pose[0]), float(pose[1]), float(pose[2])
+    return None
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def compose(T_a_b: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
     """T_a_c = T_a_b ∘ T_b_c."""
+    p, q = _one(T_a_b), _one(T_b_c)
+    if p is not None and q is not None:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        return np.array(
+            [p[0] + c * q[0] - s * q[1], p[1] + s * q[0] + c * q[1], _wrap(p[2] + q[2])]
+        )
     x1, y1, t1 = _split(T_a_b)
     x2, y2, t2 = _split(T_b_c)
     c, s = np.cos(t1), np.sin(t1)
@@ -43,6 +64,10 @@ def compose(T_a_b: np.ndarray, T_b_c: np.ndarray) -> np.ndarray:
 
 def inverse(T_a_b: np.ndarray) -> np.ndarray:
     """T_b_a."""
+    p = _one(T_a_b)
+    if p is not None:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        return np.array([-c * p[0] - s * p[1], s * p[0] - c * p[1], _wrap(-p[2])])
     x, y, t = _split(T_a_b)
     c, s = np.cos(t), np.sin(t)
     return np.stack([-c * x - s * y, s * x - c * y, wrap_angle(-t)], axis=-1)
@@ -66,6 +91,10 @@ def matrix(pose: np.ndarray) -> np.ndarray:
 
 def adjoint(pose: np.ndarray) -> np.ndarray:
     """(..., 3, 3) adjoint maps: ``T · Exp(ξ) = Exp(Ad_T ξ) · T`` (gtsam's ``AdjointMap``)."""
+    p = _one(pose)
+    if p is not None:
+        c, s = math.cos(p[2]), math.sin(p[2])
+        return np.array([[c, -s, p[1]], [s, c, -p[0]], [0.0, 0.0, 1.0]])
     x, y, t = _split(pose)
     c, s = np.cos(t), np.sin(t)
     out = np.zeros((*np.shape(x), 3, 3))
@@ -93,6 +122,15 @@ def exp(xi: np.ndarray) -> np.ndarray:
 
 def log(pose: np.ndarray) -> np.ndarray:
     """Log of poses: tangent vectors ``[v_x, v_y, ω]`` (gtsam's ``Pose2.Logmap``)."""
+    p = _one(pose)
+    if p is not None:
+        w = _wrap(p[2])
+        if abs(w) < 1e-6:
+            f, g = 1.0 - w * w / 6.0, w / 2.0 - w**3 / 24.0
+        else:
+            f, g = math.sin(w) / w, (1.0 - math.cos(w)) / w
+        d = f * f + g * g
+        return np.array([(f * p[0] + g * p[1]) / d, (-g * p[0] + f * p[1]) / d, w])
     x, y, t = _split(pose)
     t = wrap_angle(t)
     a, b = _v_factors(t)

@@ -1,0 +1,73 @@
+"""The graph benchmark: the iSAM2 target on leapfrog_5000, the real graphs, the command."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from estimation.bench_graph import DATA_DIR, leapfrog_5000, run_g2o_case
+from estimation.cli import app
+from estimation.smoother import IncrementalSmoother
+
+INTEL = DATA_DIR / "pose_graphs_g2o" / "intel.g2o"
+
+
+def test_isam2_event_p99_below_5_ms_on_leapfrog_5000() -> None:
+    """Target: per-event iSAM2 update p99 < 5 ms, Python overhead included.
+
+    Measured as process CPU time: this machine's two cores are shared with other work, and a
+    descheduled process inflates wall-clock percentiles by whatever else runs. ``coopmap bench
+    graph`` reports both clocks.
+    """
+    scenario = leapfrog_5000()
+    assert len(scenario.truth) == 5000
+    smoother = IncrementalSmoother().run(scenario.events)
+    cpu_ms = (np.array(smoother.update_cpu_seconds) + np.array(smoother.python_cpu_seconds)) * 1e3
+    assert len(cpu_ms) == len(scenario.events) > 10_000
+    assert np.percentile(cpu_ms, 99) < 5.0
+    assert len(smoother.estimate()) == 5000
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="../shared/data is not available")
+def test_intel_graph_batch_and_isam2_agree() -> None:
+    result = run_g2o_case("intel", INTEL)
+    assert result.poses == 1728
+    assert result.events == 1728
+    assert result.batch_error < 25.0  # from 277 at the file's initial values
+    assert result.isam2_error == pytest.approx(result.batch_error, rel=1e-3)
+    assert result.max_difference_mm < 3.0
+    assert result.ratio > 1.0
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="../shared/data is not available")
+def test_bench_graph_command_prints_json() -> None:
+    result = CliRunner().invoke(app, ["bench", "graph", "--json", "--case", "intel"])
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["benchmark"] == "graph"
+    assert [c["name"] for c in report["cases"]] == ["intel"]
+    for key in ("batch_seconds", "isam2_update_median_ms", "isam2_update_p99_ms", "poses", "ratio"):
+        assert report[key] == report["cases"][0][key]
+    assert report["poses"] == 1728
+
+
+@pytest.mark.parametrize(
+    ("args", "pattern"),
+    [
+        (["--case", "nope"], "unknown graph bench case 'nope'"),
+        (["--case", "intel", "--data", "{tmp}"], r"no graph bench case could run"),
+    ],
+)
+def test_bench_graph_errors_are_one_line(tmp_path: Path, args: list[str], pattern: str) -> None:
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    result = CliRunner().invoke(app, ["bench", "graph", *args])
+    assert result.exit_code == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1
+    import re
+
+    assert re.search(pattern, lines[0]), lines[0]
