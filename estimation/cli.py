@@ -345,6 +345,44 @@ def localize(
         console.print(f"  wrote {pdf_out} ({_file_size(pdf_out)})")
 
 
+@app.command("evaluate-localization")
+@cli_errors
+def evaluate_localization(
+    trials: Annotated[int, typer.Option(min=1, help="Trials per case.")] = 40,
+    only: Annotated[
+        list[str] | None,
+        typer.Option(help="Run only this part (repeatable): sim, geb079, carmen."),
+    ] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="The shared data folder (default: ../shared/data).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the random poses and noise.")] = 0,
+    json_out: JsonOption = False,
+    config: ConfigOption = None,
+) -> None:
+    """Global-localization accuracy: simulated worlds, geb079 (OctoMap), CARMEN logs."""
+    import json
+
+    from estimation.evaluate_localization import DATA_DIR, format_report, run_evaluation
+
+    cfg = _config(config)
+    parts = tuple(only or ("sim", "geb079", "carmen"))
+    unknown = sorted(set(parts) - {"sim", "geb079", "carmen"})
+    if unknown:
+        raise ConfigError(f"--only must be sim, geb079 or carmen, got {', '.join(unknown)}")
+    err = _console(stderr=True)
+    with err.status("localizing…", spinner="dots") as status:
+        report = run_evaluation(
+            cfg,
+            parts=parts,
+            trials=trials,
+            data_dir=data or DATA_DIR,
+            seed=seed,
+            progress=lambda text: status.update(f"localizing: {text}"),
+        )
+    typer.echo(json.dumps(report) if json_out else format_report(report))
+
+
 @world_app.command("show")
 @cli_errors
 def world_show(

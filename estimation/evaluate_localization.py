@@ -108,7 +108,13 @@ def _log_likelihoods(result: SearchResult, truth: np.ndarray) -> tuple[float, ..
 
 
 def _trial(
-    case: str, band: str, local: Band, global_: Band, truth: np.ndarray, params: SearchParams
+    case: str,
+    band: str,
+    local: Band,
+    global_: Band,
+    truth: np.ndarray,
+    params: SearchParams,
+    calibrate: bool = False,
 ) -> Trial:
     result = search(local, global_, params)
     d = result.pose - truth
@@ -121,7 +127,7 @@ def _trial(
         error_deg=abs(math.degrees(math.remainder(d[2], 2 * math.pi))),
         peak_ratio=result.peak_ratio,
         seconds=result.seconds,
-        log_likelihood=_log_likelihoods(result, truth),
+        log_likelihood=_log_likelihoods(result, truth) if calibrate else (),
     )
 
 
@@ -230,7 +236,9 @@ def simulated_trials(
         for name in bands:
             limits = getattr(config.bands, name)
             local = extract_band(local_grid, limits.min_m, limits.max_m)
-            out.append(_trial(case, name, local, maps[name], truth, search_params(config.search)))
+            calibrate = perturb is None and name == "ceiling"
+            search_with = search_params(config.search)
+            out.append(_trial(case, name, local, maps[name], truth, search_with, calibrate))
         if progress is not None:
             progress(f"{case}: trial {k + 1}/{trials}")
     return out
@@ -240,13 +248,11 @@ def simulated_trials(
 
 
 def _voxel_columns(
-    path: Path, z_range_m: tuple[float, float]
+    tree: Any, z_range_m: tuple[float, float]
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Centres (N, 2) of the band's known voxels, their occupancy (N,) and the resolution."""
     from mapping.band import band_layers
-    from mapping.octomap_bt import read_bt
 
-    tree = read_bt(path)
     first, last = band_layers(0.0, tree.resolution_m, *z_range_m)
     cells, occupied = tree.expand((first, last))
     centres = (cells[:, :2] + 0.5) * tree.resolution_m
@@ -286,8 +292,11 @@ def geb079_trials(
     progress: Progress | None = None,
 ) -> list[Trial]:
     """Local grids cut from geb079 at random poses, ceiling and floor bands (see the module)."""
+    from mapping.octomap_bt import read_bt
+
+    tree = read_bt(path)
     bands = {"ceiling": (2.30, 2.55), "floor": (0.30, 1.50)}
-    columns = {name: _voxel_columns(path, z) for name, z in bands.items()}
+    columns = {name: _voxel_columns(tree, z) for name, z in bands.items()}
     resolution = columns["ceiling"][2]
     maps: dict[str, Band] = {}
     for name, (centres, occupied, res) in columns.items():
@@ -447,7 +456,13 @@ def carmen_trials(
 def calibrate_beta(trials: list[Trial]) -> tuple[float, list[float]]:
     """The β of BETAS maximising the mean log P(true cell) over the trials, and that mean per β
     (trials whose truth lies off the lattice are left out)."""
-    table = np.array([t.log_likelihood for t in trials if np.isfinite(t.log_likelihood).all()])
+    table = np.array(
+        [
+            t.log_likelihood
+            for t in trials
+            if t.log_likelihood and np.isfinite(t.log_likelihood).all()
+        ]
+    )
     if len(table) == 0:
         raise EstimationError("no trial to calibrate β on")
     mean = table.mean(axis=0)
