@@ -485,8 +485,13 @@ class _Slices:
     beta: float | None
     maxima: np.ndarray  # (T,)
     sums: np.ndarray  # (T,)
+    argmax: np.ndarray | None = None  # (T,) flat index of each maximum, when kept
 
     def record(self, t: int, scores: np.ndarray, scratch: np.ndarray) -> None:
+        if self.argmax is not None:
+            self.argmax[t] = int(np.argmax(scores))
+            self.maxima[t] = scores.flat[self.argmax[t]]
+            return
         top = scores.max()
         self.maxima[t] = top
         if self.beta is not None:
@@ -497,14 +502,16 @@ class _Slices:
             self.sums[t] = scratch.sum(dtype=np.float64)
 
 
-def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices) -> None:
-    """Fill ``out[t]`` and ``slices`` for every rotation served by the base rotations
-    ``plan.base[chunk]``."""
+def _correlate(
+    plan: _Plan, chunk: np.ndarray, out: np.ndarray | None, slices: _Slices, window: tuple[int, int]
+) -> None:
+    """Fill ``out[t]`` (unless None: best pose only) and ``slices`` for every rotation served
+    by the base rotations ``plan.base[chunk]``."""
     cells, extent = plan.cells, plan.extent
     step = len(plan.rotations) // 4
     splat = np.zeros((extent, extent), dtype=np.float32)
     products = [np.empty((rows, cols // 2 + 1), dtype=np.complex64) for rows, cols in plan.shapes]
-    scratch = np.empty(out.shape[1:], dtype=np.float32)
+    scratch = np.empty(window, dtype=np.float32)
 
     def spectrum(t: int, parity: int) -> tuple[np.ndarray, bool]:
         splat.fill(0.0)
@@ -516,8 +523,10 @@ def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices)
 
     def emit(t: int, turn: _Turn, local_spectrum: np.ndarray, b: np.ndarray) -> None:
         if turn.spectrum is None:
-            out[t] = 0.0
-            slices.record(t, out[t], scratch)
+            scratch.fill(0.0)
+            if out is not None:
+                out[t] = 0.0
+            slices.record(t, scratch, scratch)
             return
         x0, y0 = b - turn.b_min
         product = products[turn.parity]
@@ -525,8 +534,11 @@ def _correlate(plan: _Plan, chunk: np.ndarray, out: np.ndarray, slices: _Slices)
         # Inverse along y (in place), then along x only for the rows of the window.
         half = sfft.ifft(product, axis=0, overwrite_x=True)[y0 : y0 + turn.size[1]]
         corr = sfft.irfft(half, n=plan.shapes[turn.parity][1], axis=1, overwrite_x=True)
-        out[t] = turn.view(corr[:, x0 : x0 + turn.size[0]])
-        slices.record(t, out[t], scratch)
+        scores = turn.view(corr[:, x0 : x0 + turn.size[0]])
+        if out is not None:
+            out[t] = scores
+            scores = out[t]
+        slices.record(t, scores, scratch)
 
     for j in plan.base[chunk]:
         j = int(j)
@@ -556,9 +568,11 @@ def _correlate_lattice(
     metric: Metric,
     workers: int,
     beta: float | None = None,
-) -> tuple[np.ndarray, _Slices]:
+    keep_scores: bool = True,
+) -> tuple[np.ndarray | None, _Slices]:
     """float32 scores (T, Y, X) and each rotation's maximum (and, given β, its sum of
-    exp(β·(score − maximum)))."""
+    exp(β·(score − maximum))). Without ``keep_scores``, no scores: each rotation's maximum and
+    where it lies (``slices.argmax``)."""
     r = _check_pair(local, global_)
     cells = _local_cells(local, metric)
     values = match_values(global_, metric)
@@ -572,15 +586,15 @@ def _correlate_lattice(
     symmetric = local_frac[0] == local_frac[1] and local_frac[0] in (0.0, 0.5)
     plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
     shape = (len(yaw_rad), len(y_m), len(x_m))
-    out = np.empty(shape, dtype=np.float32)
-    slices = _Slices(beta, np.empty(shape[0]), np.zeros(shape[0]))
-    chunks = [c for c in np.array_split(np.arange(len(plan.base)), max(1, workers)) if len(c)]
-    if len(chunks) == 1:
-        _correlate(plan, chunks[0], out, slices)
-    else:
-        with ThreadPoolExecutor(max_workers=len(chunks)) as pool:
-            for future in [pool.submit(_correlate, plan, c, out, slices) for c in chunks]:
-                future.result()
+    out = np.empty(shape, dtype=np.float32) if keep_scores else None
+    argmax = None if keep_scores else np.zeros(shape[0], dtype=np.int64)
+    slices = _Slices(beta, np.empty(shape[0]), np.zeros(shape[0]), argmax)
+    window = (shape[1], shape[2])
+
+    def work(chunk: np.ndarray) -> None:
+        _correlate(plan, chunk, out, slices, window)
+
+    _run(work, np.arange(len(plan.base)), workers)
     return out, slices
 
 
@@ -597,7 +611,9 @@ def correlate_all(
 
     Equal to ``score_poses_loop`` up to float32 round-off.
     """
-    return _correlate_lattice(local, global_, x_m, y_m, yaw_rad, metric, workers)[0]
+    scores = _correlate_lattice(local, global_, x_m, y_m, yaw_rad, metric, workers)[0]
+    assert scores is not None
+    return scores
 
 
 def _run(work: Callable[[np.ndarray], None], items: np.ndarray, workers: int) -> None:
@@ -1038,6 +1054,7 @@ def search(
     scores, slices = _correlate_lattice(
         local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count(), params.beta
     )
+    assert scores is not None
     return result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices)
 
 
@@ -1048,22 +1065,28 @@ def best_pose(
     window_m: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, float, float]:
     """The refined best pose alone (x_m, y_m, yaw_rad), its lattice score and the seconds it
-    took: the same exhaustive correlation as ``search``, without the PDF."""
+    took: the same exhaustive correlation as ``search``, keeping only each rotation's maximum
+    (no score lattice, no PDF); the three rotations around the best are scored again for the
+    refinement."""
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
-    scores, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count()
+    workers = params.thread_count()
+    _, slices = _correlate_lattice(
+        local, global_, x_m, y_m, yaw_rad, params.metric, workers, keep_scores=False
     )
+    assert slices.argmax is not None
     t = int(np.argmax(slices.maxima))
-    y, x = (int(i) for i in np.unravel_index(int(np.argmax(scores[t])), scores.shape[1:]))
+    y, x = (int(i) for i in np.unravel_index(int(slices.argmax[t]), (len(y_m), len(x_m))))
+    around = yaw_rad[np.arange(t - 1, t + 2) % len(yaw_rad)]
+    near = correlate_all(local, global_, x_m, y_m, around, params.metric, workers=1)
     steps = np.array(_steps(x_m, y_m, yaw_rad))
     lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
-    pose = lattice + refine_peak(scores, (t, y, x), _wraps(yaw_rad)) * steps
+    pose = lattice + refine_peak(near, (1, y, x), yaw_wraps=False) * steps
     bounds = np.column_stack([lattice - 2 * steps, lattice + 2 * steps])
     pose = refine_pose(local, global_, pose, params.metric, bounds)
     pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
-    return pose, float(scores[t, y, x]), time.perf_counter() - started
+    return pose, float(slices.maxima[t]), time.perf_counter() - started
 
 
 # -- windowed search around an estimate --------------------------------------------------------

@@ -12,6 +12,7 @@ from estimation.posepdf import PosePdf
 from estimation.search import (
     Metric,
     SearchParams,
+    best_pose,
     correlate_all,
     match_values,
     normalise,
@@ -308,3 +309,15 @@ def test_metric_values_free_and_occupied_evidence() -> None:
     band = Band(occupancy, known, np.zeros(2), 0.1)
     values = match_values(band, Metric(free_weight=0.4, occupied_level=0.1))
     np.testing.assert_allclose(values, [[-0.4, -0.2, 0.0, 0.5, 1.0, 0.0]], atol=1e-12)
+
+
+def test_best_pose_alone_matches_the_full_search(building: tuple[Band, object]) -> None:
+    global_, scene = building
+    truth = np.array([9.3, 6.1, 2.4])
+    local = local_view(scene, truth, 5.0, 0.1, np.random.default_rng(6), noise=0.1)
+    full = search(local, global_, SearchParams())
+    pose, score, seconds = best_pose(local, global_, SearchParams())
+    assert score == pytest.approx(full.best_score, rel=1e-6)
+    np.testing.assert_allclose(pose, full.pose, atol=1e-6)
+    assert pose_error(pose, truth)[0] < 0.05
+    assert seconds > 0
