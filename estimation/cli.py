@@ -357,13 +357,21 @@ def evaluate_localization(
         Path | None, typer.Option(help="The shared data folder (default: ../shared/data).")
     ] = None,
     seed: Annotated[int, typer.Option(help="Seed of the random poses and noise.")] = 0,
+    figures: Annotated[
+        Path | None, typer.Option(help="Also draw two localizations' PDFs into this folder.")
+    ] = None,
     json_out: JsonOption = False,
     config: ConfigOption = None,
 ) -> None:
     """Global-localization accuracy: simulated worlds, geb079 (OctoMap), CARMEN logs."""
     import json
 
-    from estimation.evaluate_localization import DATA_DIR, format_report, run_evaluation
+    from estimation.evaluate_localization import (
+        DATA_DIR,
+        format_report,
+        run_evaluation,
+        write_figures,
+    )
 
     cfg = _config(config)
     parts = tuple(only or ("sim", "geb079", "carmen"))
@@ -380,7 +388,13 @@ def evaluate_localization(
             seed=seed,
             progress=lambda text: status.update(f"localizing: {text}"),
         )
+        if figures is not None:
+            status.update("drawing the figures…")
+            report["figures"] = [str(p) for p in write_figures(figures, cfg, data or DATA_DIR)]
     typer.echo(json.dumps(report) if json_out else format_report(report))
+    if figures is not None and not json_out:
+        for path in report["figures"]:
+            typer.echo(f"wrote {path}")
 
 
 @world_app.command("show")

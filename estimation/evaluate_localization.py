@@ -55,6 +55,7 @@ __all__ = [
     "run_evaluation",
     "simulated_trials",
     "summarise",
+    "write_figures",
 ]
 
 #: The shared real-data folder beside the repository (``../shared/data``).
@@ -174,6 +175,37 @@ def _T_robot_scanner(config: Config) -> np.ndarray:
     return pose2_matrix(config.robot.scanner_x_m, 0.0, 0.0, z_m=config.robot.scanner_height_m)
 
 
+def _world_map(
+    world: Any,
+    config: Config,
+    rng: np.random.Generator,
+    scene: Any,
+    bands: tuple[str, ...] = ("ceiling",),
+) -> dict[str, Band]:
+    """The bands of 360° views taken every 2.5 m over the world's free floor, fused in the map
+    frame: the map a mapping mission would have left."""
+    from sensors.frames import pose2_matrix
+
+    params = GridParams(**config.grid.model_dump())
+    free = _free_positions(world, params.resolution_m, 0.5)
+    lower, upper = world.bounds_xy()
+    stations = []
+    for x in np.arange(lower[0] + 1.25, upper[0], 2.5):
+        for y in np.arange(lower[1] + 1.25, upper[1], 2.5):
+            nearest = free[np.argmin(np.hypot(*(free - (x, y)).T))]
+            if math.dist(nearest, (x, y)) < 1.0:
+                stations.append((float(nearest[0]), float(nearest[1]), 0.0))
+    T_robot_scanner = _T_robot_scanner(config)
+    scans = [_view_scan(world, pose, config, rng, scene) for pose in stations]
+    frames = [pose2_matrix(x, y, 0.0) @ T_robot_scanner for x, y, _ in stations]
+    grid = fuse_scans(scans, frames, params)
+    maps = {}
+    for name in bands:
+        limits = getattr(config.bands, name)
+        maps[name] = extract_band(grid, limits.min_m, limits.max_m)
+    return maps
+
+
 def simulated_trials(
     world_name: str,
     config: Config,
@@ -190,7 +222,6 @@ def simulated_trials(
     after the map is built and before the local views are taken.
     """
     from estimation.resources import resolve_builtin
-    from sensors.frames import pose2_matrix
     from sensors.sim.scene import RaycastScene, build_mesh
     from sensors.sim.world import load_world, perturb_movables
 
@@ -200,23 +231,9 @@ def simulated_trials(
     free = _free_positions(world, params.resolution_m, 0.5)
     if len(free) == 0:
         raise EstimationError(f"{world_name}: no free position for a robot")
-    # The map: views every 2.5 m over the free floor, fused in the map frame.
     scene = RaycastScene(build_mesh(world, cylinder_segments=segments))
-    lower, upper = world.bounds_xy()
-    stations = []
-    for x in np.arange(lower[0] + 1.25, upper[0], 2.5):
-        for y in np.arange(lower[1] + 1.25, upper[1], 2.5):
-            nearest = free[np.argmin(np.hypot(*(free - (x, y)).T))]
-            if math.dist(nearest, (x, y)) < 1.0:
-                stations.append((float(nearest[0]), float(nearest[1]), 0.0))
+    maps = _world_map(world, config, rng, scene, bands)
     T_robot_scanner = _T_robot_scanner(config)
-    scans = [_view_scan(world, pose, config, rng, scene) for pose in stations]
-    frames = [pose2_matrix(x, y, 0.0) @ T_robot_scanner for x, y, _ in stations]
-    global_grid = fuse_scans(scans, frames, params)
-    maps = {}
-    for name in bands:
-        limits = getattr(config.bands, name)
-        maps[name] = extract_band(global_grid, limits.min_m, limits.max_m)
     changed = world
     case = world_name
     if perturb is not None:
@@ -289,14 +306,17 @@ def geb079_trials(
     rng: np.random.Generator,
     trials: int,
     *,
+    bands: tuple[str, ...] = ("ceiling", "floor"),
+    capture: Callable[[Band, Band], None] | None = None,
     progress: Progress | None = None,
 ) -> list[Trial]:
-    """Local grids cut from geb079 at random poses, ceiling and floor bands (see the module)."""
+    """Local grids cut from geb079 at random poses, ceiling and floor bands (see the module);
+    ``capture`` is handed each (local, global) pair."""
     from mapping.octomap_bt import read_bt
 
     tree = read_bt(path)
-    bands = {"ceiling": (2.30, 2.55), "floor": (0.30, 1.50)}
-    columns = {name: _voxel_columns(tree, z) for name, z in bands.items()}
+    heights = {"ceiling": (2.30, 2.55), "floor": (0.30, 1.50)}
+    columns = {name: _voxel_columns(tree, heights[name]) for name in ("ceiling", "floor")}
     resolution = columns["ceiling"][2]
     maps: dict[str, Band] = {}
     for name, (centres, occupied, res) in columns.items():
@@ -338,6 +358,10 @@ def geb079_trials(
             flip = rng.random(keep.shape) < 0.02
             occupancy = np.where(flip, 1.0 - occupancy, occupancy)
             local = Band(np.where(keep, occupancy, 0.0), keep, lower, res)
+            if name not in bands:
+                continue
+            if capture is not None:
+                capture(local, maps[name])
             out.append(_trial("geb079", name, local, maps[name], truth, params))
         if progress is not None:
             progress(f"geb079: trial {k + 1}/{trials}")
@@ -448,6 +472,53 @@ def carmen_trials(
         if progress is not None:
             progress(f"{case}: trial {k + 1}/{trials}")
     return out
+
+
+# -- figures -----------------------------------------------------------------------------------
+
+
+def write_figures(
+    out_dir: Path, config: Config, data_dir: Path = DATA_DIR, seed: int = 0
+) -> list[Path]:
+    """``search_geb079.png`` (a local ceiling grid placed in geb079, when the data is there) and
+    ``search_office_loop.png`` (a single view in office_loop: its offices repeat, and the PDF
+    shows every place the view fits), drawn by ``localize.render_pdf``."""
+    from estimation.localize import Localization, render_pdf
+    from estimation.resources import resolve_builtin
+    from sensors.sim.scene import RaycastScene, build_mesh
+    from sensors.sim.world import load_world
+
+    written: list[Path] = []
+    params = search_params(config.search)
+    rng = np.random.default_rng(seed)
+    path = data_dir / "octomap_fr079" / "geb079.bt"
+    if path.exists():
+        captured: dict[str, Band] = {}
+
+        def keep(local: Band, global_: Band) -> None:
+            captured["local"], captured["global"] = local, global_
+
+        geb079_trials(path, config, rng, 1, bands=("ceiling",), capture=keep)
+        result = search(captured["local"], captured["global"], params)
+        found = Localization(
+            result, (), result.is_dominant(params.dominance_ratio), captured["global"],
+            captured["local"], result.seconds,
+        )  # fmt: skip
+        written.append(render_pdf(found, out_dir / "search_geb079.png"))
+    world = load_world(resolve_builtin("worlds", "office_loop"))
+    grid_params = GridParams(**config.grid.model_dump())
+    scene = RaycastScene(build_mesh(world, cylinder_segments=config.simulation.cylinder_segments))
+    global_ = _world_map(world, config, rng, scene)["ceiling"]
+    scan = _view_scan(world, (7.0, 1.25, 90.0), config, rng, scene)
+    local_grid = fuse_scans([scan], [_T_robot_scanner(config)], grid_params)
+    limits = config.bands.ceiling
+    local = extract_band(local_grid, limits.min_m, limits.max_m)
+    result = search(local, global_, params)
+    found = Localization(
+        result, (), result.is_dominant(params.dominance_ratio), global_, local, result.seconds
+    )
+    written.append(render_pdf(found, out_dir / "search_office_loop.png"))
+    return written
 
 
 # -- summary -----------------------------------------------------------------------------------

@@ -120,9 +120,9 @@ def localize_files(
 
 
 def render_pdf(localization: Localization, path: Path) -> Path:
-    """Two panels: the map with the scan's occupied cells drawn at the best pose, and the
-    position PDF (summed over rotations, the paper's Fig. 5b) as a log-scale heat map with the
-    best pose marked."""
+    """Three panels: the map with the scan's occupied cells drawn at the best pose; the position
+    PDF summed over rotations (the paper's Fig. 5b) as a log-scale heat map; and a linear close
+    view of the peak, ±1 m around the best pose. The best pose is marked on each."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -130,8 +130,16 @@ def render_pdf(localization: Localization, path: Path) -> Path:
 
     result = localization.result
     band, scan = localization.map_band, localization.scan_band
-    x, y, yaw = result.pose
-    fig, (ax_map, ax_pdf) = plt.subplots(1, 2, figsize=(13, 6), constrained_layout=True)
+    x, y, yaw = (float(v) for v in result.pose)
+    x0, x1, y0, y1 = band.extent()
+    wide = (x1 - x0) > 1.6 * (y1 - y0)
+    if wide:
+        fig = plt.figure(figsize=(12, 13), constrained_layout=True)
+        grid = fig.add_gridspec(3, 1, height_ratios=[1.0, 1.0, 1.3])
+    else:
+        fig = plt.figure(figsize=(19, 6.5), constrained_layout=True)
+        grid = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.8])
+    ax_map, ax_pdf, ax_zoom = (fig.add_subplot(grid[i]) for i in range(3))
 
     shown = np.where(band.known, band.occupancy, np.nan)
     cmap = matplotlib.colormaps["Greys"].with_extremes(bad="#d8e4f0")
@@ -141,14 +149,11 @@ def render_pdf(localization: Localization, path: Path) -> Path:
     c, s = math.cos(yaw), math.sin(yaw)
     px = c * gx[occupied] - s * gy[occupied] + x
     py = s * gx[occupied] + c * gy[occupied] + y
-    ax_map.scatter(px, py, s=2, c="tab:red", linewidths=0, label="scan, occupied cells")
-    ax_map.set_title("map, with the scan at the best pose")
+    ax_map.scatter(px, py, s=2, c="tab:red", linewidths=0, label="scan: occupied cells")
+    ax_map.set_title("map (grey; blue: unknown), scan placed at the best pose")
     ax_map.legend(loc="upper right", markerscale=4)
 
     marginal = result.prob.sum(axis=0, dtype=np.float64)
-    with np.errstate(divide="ignore"):
-        decades = np.log10(marginal / marginal.max())
-    decades = np.maximum(decades, -12.0)
     step_x, step_y = result.x_m[1] - result.x_m[0], result.y_m[1] - result.y_m[0]
     extent = (
         result.x_m[0] - step_x / 2,
@@ -156,26 +161,50 @@ def render_pdf(localization: Localization, path: Path) -> Path:
         result.y_m[0] - step_y / 2,
         result.y_m[-1] + step_y / 2,
     )
+    with np.errstate(divide="ignore"):
+        decades = np.maximum(np.log10(marginal / marginal.max()), -12.0)
     image = ax_pdf.imshow(decades, origin="lower", extent=extent, cmap="magma", vmin=-12, vmax=0)
-    fig.colorbar(image, ax=ax_pdf, label="log10 P(x, y) / max (summed over rotations)")
-    for ax in (ax_map, ax_pdf):
+    fig.colorbar(image, ax=ax_pdf, shrink=0.8, label="log10 P(x, y) / max")
+    ax_pdf.set_title(
+        f"position PDF (summed over {len(result.yaw_rad)} rotations); peak ratio "
+        f"{result.peak_ratio:.3g}"
+    )
+
+    ix = np.flatnonzero(np.abs(result.x_m - x) <= 1.0)
+    iy = np.flatnonzero(np.abs(result.y_m - y) <= 1.0)
+    close = marginal[np.ix_(iy, ix)]
+    zoom = ax_zoom.imshow(
+        close / marginal.max(),
+        origin="lower",
+        extent=(
+            result.x_m[ix[0]] - step_x / 2,
+            result.x_m[ix[-1]] + step_x / 2,
+            result.y_m[iy[0]] - step_y / 2,
+            result.y_m[iy[-1]] + step_y / 2,
+        ),
+        cmap="viridis",
+        vmin=0,
+        vmax=1,
+    )
+    fig.colorbar(zoom, ax=ax_zoom, shrink=0.8, label="P(x, y) / max")
+    sigma = np.sqrt(np.maximum(np.diag(result.covariance), 0.0))
+    ax_zoom.set_title(
+        f"peak: x={x:.3f} m, y={y:.3f} m, yaw={math.degrees(yaw):.2f}°\n"
+        f"σ {sigma[0] * 100:.1f} cm, {sigma[1] * 100:.1f} cm, {math.degrees(sigma[2]):.2f}°"
+    )
+    for ax, arrow in ((ax_map, 0.8), (ax_pdf, 0.8), (ax_zoom, 0.3)):
         ax.plot([x], [y], marker="o", ms=9, mfc="none", mec="tab:cyan", mew=2)
         ax.annotate(
             "",
-            xy=(x + 0.8 * c, y + 0.8 * s),
+            xy=(x + arrow * c, y + arrow * s),
             xytext=(x, y),
             arrowprops={"arrowstyle": "->", "color": "tab:cyan", "lw": 2},
         )
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.set_aspect("equal")
-    ratio = result.peak_ratio
-    ax_pdf.set_title(
-        f"position PDF: best x={x:.2f} m, y={y:.2f} m, yaw={math.degrees(yaw):.1f}°, "
-        f"peak ratio {ratio:.3g}"
-    )
     path = Path(path)
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return path
