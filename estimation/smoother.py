@@ -52,6 +52,7 @@ __all__ = [
     "extract_poses",
     "factor_fingerprint",
     "optimize_batch",
+    "truncated_cost",
 ]
 
 RobustMode = Literal["gnc_tls", "huber", "cauchy", "none"]
@@ -99,16 +100,30 @@ def optimize_batch(
     marginals: bool | Iterable[int] = False,
     max_iterations: int = 100,
     gnc_probability: float = 0.999,
+    initialization: Literal["best", "given"] = "best",
 ) -> BatchResult:
-    """Optimize the whole graph from ``initial``; raises ``EstimationError`` when a robot is
-    unconstrained or the optimizer fails. ``marginals``: True for every pose, or some keys."""
+    """Optimize the whole graph; raises ``EstimationError`` when a robot is unconstrained or
+    the optimizer fails. ``marginals``: True for every pose, or some keys.
+
+    ``initialization="best"`` starts from ``initial`` or from LAGO (GTSAM's linear
+    approximation: orientations first, then positions), whichever has the lower truncated
+    cost (each mutual/global factor's χ² capped at the GNC threshold): after a long mission the
+    dead-reckoned guesses are too far off for LM, while LAGO alone is at the mercy of outliers.
+    ``"given"`` always starts from ``initial``.
+    """
     start = time.perf_counter()
     check_constrained(factors, initial.keys())
     kernel: RobustKernel = (
         "huber" if robust == "huber" else "cauchy" if robust == "cauchy" else "none"
     )
     graph = to_gtsam_graph(factors, kernel)
-    values = to_gtsam_values(initial)
+    cap = float(chi2.ppf(gnc_probability, 3))
+    starts = [dict(initial)]
+    if initialization == "best":
+        lago = _lago(factors)
+        if lago is not None:
+            starts.append(lago)
+    values = to_gtsam_values(min(starts, key=lambda s: truncated_cost(factors, s, cap)))
     inliers = np.ones(len(factors), dtype=bool)
     try:
         if robust == "gnc_tls" and any(f.robust for f in factors):
@@ -145,6 +160,45 @@ def optimize_batch(
         seconds=time.perf_counter() - start,
         covariances=covariances,
     )
+
+
+def truncated_cost(
+    factors: Sequence[FactorSpec], poses: Mapping[int, np.ndarray], cap: float
+) -> float:
+    """Σ χ² of all factors at ``poses``, each mutual/global one capped at ``cap`` (vectorised)."""
+    total = 0.0
+    for arity in (1, 2):
+        chosen = [f for f in factors if len(f.keys) == arity]
+        if not chosen:
+            continue
+        first = np.array([poses[f.keys[0]] for f in chosen])
+        predicted = (
+            first
+            if arity == 1
+            else se2.between(first, np.array([poses[f.keys[1]] for f in chosen]))
+        )
+        residual = se2.log(se2.between(np.array([f.measurement for f in chosen]), predicted))
+        info = np.linalg.inv(np.array([f.covariance for f in chosen]))
+        m2 = np.einsum("ni,nij,nj->n", residual, info, residual)
+        robust = np.array([f.robust for f in chosen])
+        total += float(np.where(robust, np.minimum(m2, cap), m2).sum())
+    return total
+
+
+def _lago(factors: Sequence[FactorSpec]) -> dict[int, np.ndarray] | None:
+    """LAGO initial values (GTSAM wants diagonal noise models: the diagonals are used)."""
+    graph = gtsam.NonlinearFactorGraph()
+    for spec in factors:
+        noise = gtsam.noiseModel.Diagonal.Variances(np.diag(spec.covariance))
+        pose = gtsam.Pose2(*(float(v) for v in spec.measurement))
+        if len(spec.keys) == 1:
+            graph.add(gtsam.PriorFactorPose2(spec.keys[0], pose, noise))
+        else:
+            graph.add(gtsam.BetweenFactorPose2(spec.keys[0], spec.keys[1], pose, noise))
+    try:
+        return extract_poses(gtsam.lago.initialize(graph, False))
+    except (RuntimeError, ValueError, IndexError):
+        return None
 
 
 def _subgraph(graph: gtsam.NonlinearFactorGraph, keep: np.ndarray) -> gtsam.NonlinearFactorGraph:
