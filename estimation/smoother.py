@@ -51,6 +51,7 @@ __all__ = [
     "RobustMode",
     "extract_poses",
     "factor_fingerprint",
+    "lago_initial_values",
     "optimize_batch",
     "truncated_cost",
 ]
@@ -120,7 +121,7 @@ def optimize_batch(
     cap = float(chi2.ppf(gnc_probability, 3))
     starts = [dict(initial)]
     if initialization == "best":
-        lago = _lago(factors)
+        lago = lago_initial_values(factors)
         if lago is not None:
             starts.append(lago)
     values = to_gtsam_values(min(starts, key=lambda s: truncated_cost(factors, s, cap)))
@@ -185,7 +186,7 @@ def truncated_cost(
     return total
 
 
-def _lago(factors: Sequence[FactorSpec]) -> dict[int, np.ndarray] | None:
+def lago_initial_values(factors: Sequence[FactorSpec]) -> dict[int, np.ndarray] | None:
     """LAGO initial values (GTSAM wants diagonal noise models: the diagonals are used)."""
     graph = gtsam.NonlinearFactorGraph()
     for spec in factors:
