@@ -23,6 +23,7 @@ import numpy as np
 from estimation.search import (
     SearchParams,
     best_pose,
+    correlate_all,
     match_values,
     score_poses_loop,
     search,
@@ -85,10 +86,10 @@ def run_search_benchmark(
     begin = time.perf_counter()
     peer_scores = score_poses_loop(local, global_, result.x_m, ys, yaws, params.metric)
     peer_measured = time.perf_counter() - begin
-    poses = result.scores.size
+    poses = result.poses
     peer_poses = peer_scores.size
     peer_seconds = peer_measured * poses / peer_poses
-    ours = result.scores[np.ix_(picks, rows, np.arange(len(result.x_m)))]
+    ours = correlate_all(local, global_, result.x_m, result.y_m, yaws, params.metric)[:, rows]
     scale = float(np.abs(match_values(local, params.metric)).sum())
 
     median = statistics.median(seconds)

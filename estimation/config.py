@@ -248,7 +248,7 @@ class SearchConfig(_Section):
     occupied_level: float = Field(
         0.1, gt=0, lt=1, description="band occupancy from which a cell is occupied evidence"
     )
-    beta: float = Field(0.05, gt=0, description="PDF ∝ exp(beta · score), calibrated")
+    beta: float = Field(0.04, gt=0, description="PDF ∝ exp(beta · score), calibrated")
 
     @model_validator(mode="after")
     def _windows_ordered(self) -> Self:

@@ -62,7 +62,7 @@ class Localization:
             "seconds": self.seconds,
             "dominant": self.dominant,
             "windows_m": [w.side_m for w in self.windows],
-            "poses_searched": int(self.result.scores.size),
+            "poses_searched": self.result.poses,
         }
 
 

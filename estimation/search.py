@@ -119,7 +119,7 @@ class SearchParams:
     angular_resolution_rad: float = math.radians(1.0)
     free_weight: float = 0.5
     occupied_level: float = 0.1
-    beta: float = 0.05
+    beta: float = 0.04
     peak_radius_m: float = 0.5
     peak_radius_rad: float = math.radians(10.0)
     dominance_ratio: float = 2.0
@@ -627,19 +627,25 @@ def _run(work: Callable[[np.ndarray], None], items: np.ndarray, workers: int) ->
             future.result()
 
 
-def _pdf(scores: np.ndarray, slices: _Slices, workers: int = 1) -> np.ndarray:
+def _pdf(
+    scores: np.ndarray, slices: _Slices, workers: int = 1, in_place: bool = False
+) -> np.ndarray:
     """float32 probabilities exp(β·(score − max) − log Z), Z = Σ exp(β·(score − max)), from
-    the scores and their per-rotation maxima and sums: one pass writing the result. Rotations
-    whose best cell lies more than float32's normal range (e^−87) below the peak hold exactly 0
-    and are never computed (their pages are never touched); in the others, cells are floored
-    at e^−87 — float32's exp is ten times slower where it returns subnormal numbers."""
+    the scores and their per-rotation maxima and sums: one pass writing the result (over the
+    scores themselves when ``in_place``). Rotations whose best cell lies more than float32's
+    normal range (e^−87) below the peak hold exactly 0; in the others, cells are floored at
+    e^−87 — float32's exp is ten times slower where it returns subnormal numbers."""
     assert slices.beta is not None
     beta = slices.beta
     top = float(slices.maxima.max())
     relative = beta * (slices.maxima - top)
     live = np.flatnonzero(relative > -_NORMAL_FLOOR)
     log_total = math.log(float((np.exp(relative[live]) * slices.sums[live]).sum()))
-    prob = np.zeros(scores.shape, dtype=np.float32)
+    if in_place:
+        prob = scores
+        prob[np.flatnonzero(relative <= -_NORMAL_FLOOR)] = 0.0
+    else:
+        prob = np.zeros(scores.shape, dtype=np.float32)
     b = np.float32(beta)
     shift = np.float32(top + log_total / beta)
 
@@ -895,7 +901,6 @@ def refine_pose(
     pose, which the lattice samples only every cell and every angular step. (A bilinear
     interpolant has kinks exactly where the lattice puts the local cell centres.)"""
     from scipy.ndimage import spline_filter
-    from scipy.optimize import minimize
 
     r = _check_pair(local, global_)
     cells = _local_cells(local, metric)
@@ -914,13 +919,44 @@ def refine_pose(
         return -value, -gradient * scale
 
     start = np.clip(np.asarray(start, dtype=float), bounds[:, 0], bounds[:, 1])
-    z0 = (start - centre) / scale
-    found = minimize(
-        cost, z0, jac=True, method="L-BFGS-B", bounds=[(-1.0, 1.0)] * 3,
-        options={"maxiter": 60, "ftol": 1e-12, "gtol": 1e-9},
-    )  # fmt: skip
-    best = found.x if found.fun <= cost(z0)[0] else z0
+    best = _minimise_in_box(cost, (start - centre) / scale)
     return np.asarray(centre + best * scale, dtype=float)
+
+
+def _minimise_in_box(
+    cost: Callable[[np.ndarray], tuple[float, np.ndarray]],
+    z: np.ndarray,
+    iterations: int = 40,
+) -> np.ndarray:
+    """Minimise a smooth cost (value, gradient) within the box [−1, 1]ⁿ: quasi-Newton (BFGS)
+    steps, projected onto the box, with backtracking. A few variables: a dozen evaluations,
+    where scipy's L-BFGS-B spends most of its time in its own bookkeeping."""
+    f, g = cost(z)
+    inverse = np.eye(len(z)) * (0.1 / max(float(np.abs(g).max()), 1e-12))
+    for _ in range(iterations):
+        direction = -inverse @ g
+        step = 1.0
+        while True:
+            trial = np.clip(z + step * direction, -1.0, 1.0)
+            moved = trial - z
+            f_trial, g_trial = cost(trial)
+            if f_trial <= f + 1e-4 * float(g @ moved) or step < 1e-4:
+                break
+            step *= 0.5
+        if f_trial > f or np.abs(moved).max() < 1e-7:
+            break
+        change = g_trial - g
+        curvature = float(moved @ change)
+        if curvature > 1e-12:
+            rho = 1.0 / curvature
+            identity = np.eye(len(z))
+            inverse = (identity - rho * np.outer(moved, change)) @ inverse @ (
+                identity - rho * np.outer(change, moved)
+            ) + rho * np.outer(moved, moved)
+        z, f, g = trial, f_trial, g_trial
+        if abs(float(g @ moved)) < 1e-10 * max(1.0, abs(f)):
+            break
+    return z
 
 
 # -- the search --------------------------------------------------------------------------------
@@ -930,8 +966,9 @@ def refine_pose(
 class SearchResult:
     """The exhaustive search's answer: pose of the local grid's frame in the global grid's frame.
 
-    ``scores`` and ``prob`` are float32 (T, Y, X) over ``yaw_rad`` × ``y_m`` × ``x_m``; ``prob``
-    ∝ exp(β·score) sums to 1. ``pose`` is the refined best pose (x_m, y_m, yaw_rad);
+    ``prob`` (float32, (T, Y, X) over ``yaw_rad`` × ``y_m`` × ``x_m``) ∝ exp(β·score) sums to
+    1; ``scores`` are the float32 scores when the search was asked to keep them (else None: the
+    PDF is computed over them). ``pose`` is the refined best pose (x_m, y_m, yaw_rad);
     ``covariance`` (m, m, rad) and ``peak_ratio`` are those of ``pdf`` (``PosePdf``'s
     definitions), computed on the scores.
     """
@@ -939,7 +976,7 @@ class SearchResult:
     x_m: np.ndarray
     y_m: np.ndarray
     yaw_rad: np.ndarray
-    scores: np.ndarray
+    scores: np.ndarray | None
     prob: np.ndarray
     beta: float
     best_index: tuple[int, int, int]
@@ -953,6 +990,11 @@ class SearchResult:
     def pdf(self) -> PosePdf:
         """The whole normalised PDF as a ``PosePdf`` (a float64 copy, built on first use)."""
         return PosePdf(self.x_m, self.y_m, self.yaw_rad, self.prob)
+
+    @property
+    def poses(self) -> int:
+        """The number of poses scored."""
+        return int(self.prob.size)
 
     @property
     def lattice_pose(self) -> np.ndarray:
@@ -987,15 +1029,17 @@ def result_from_scores(
     started: float,
     grids: tuple[Band, Band] | None = None,
     slices: _Slices | None = None,
+    keep_scores: bool = True,
 ) -> SearchResult:
     """Best pose, refinement, PDF, covariance and dominance of a score lattice (T, Y, X).
 
     The best lattice pose is refined by a quadratic fitted to the scores around it, then, when
     the (local, global) ``grids`` are given, by maximising the spline-interpolated score
     within two lattice steps of it (``refine_pose``): near-flat peaks can put the best lattice
-    cell a step away from the one nearest the optimum.
+    cell a step away from the one nearest the optimum. Without ``keep_scores`` the PDF is
+    computed over the scores (float32, contiguous), which are then gone.
     """
-    scores = np.asarray(scores, dtype=np.float32)
+    scores = np.ascontiguousarray(scores, dtype=np.float32)
     if slices is None or slices.beta != params.beta:
         slices = _Slices(params.beta, np.empty(len(scores)), np.zeros(len(scores)))
         scratch = np.empty(scores.shape[1:], dtype=np.float32)
@@ -1018,12 +1062,12 @@ def result_from_scores(
     with np.errstate(over="ignore"):
         ratio = float(np.exp(params.beta * (best - elsewhere)))
     covariance = peak_covariance(scores, (t, y, x), x_m, y_m, yaw_rad, params.beta, *radii)
-    prob = _pdf(scores, slices, params.thread_count())
+    prob = _pdf(scores, slices, params.thread_count(), in_place=not keep_scores)
     return SearchResult(
         x_m=x_m,
         y_m=y_m,
         yaw_rad=yaw_rad,
-        scores=scores,
+        scores=scores if keep_scores else None,
         prob=prob,
         beta=params.beta,
         best_index=(t, y, x),
@@ -1040,9 +1084,13 @@ def search(
     global_: Band,
     params: SearchParams,
     window_m: tuple[float, float, float, float] | None = None,
+    *,
+    keep_scores: bool = False,
 ) -> SearchResult:
     """Score every pose (x, y, θ) of the window (default: the whole global grid) at the grids'
     resolution and ``params.angular_resolution_rad``; the whole normalised PDF and its peak.
+    The scores are kept in the result only when asked (the PDF is otherwise computed over
+    them, in place).
 
     The pose is that of ``local``'s frame (the frame its ``lower_xy`` is given in) in
     ``global_``'s frame. EstimationError on an empty scan or map, mismatched resolutions or a
@@ -1055,7 +1103,9 @@ def search(
         local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count(), params.beta
     )
     assert scores is not None
-    return result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices)
+    return result_from_scores(
+        scores, x_m, y_m, yaw_rad, params, started, (local, global_), slices, keep_scores
+    )
 
 
 def best_pose(
