@@ -647,17 +647,31 @@ def _pdf(
     else:
         prob = np.zeros(scores.shape, dtype=np.float32)
     b = np.float32(beta)
-    shift = np.float32(top + log_total / beta)
+    # The maxima are float32 scores, so ``peak`` is exact and s − peak loses nothing near the
+    # peak; log Z is subtracted after scaling, where its rounding is relative to log Z alone.
+    peak, log_z = np.float32(top), np.float32(log_total)
+    sums = np.zeros(len(scores))
 
     def exponentiate(ts: np.ndarray) -> None:
         for t in ts:
             target = prob[t]
-            np.subtract(scores[t], shift, out=target)
+            np.subtract(scores[t], peak, out=target)
             target *= b
+            target -= log_z
             np.maximum(target, np.float32(-_NORMAL_FLOOR), out=target)
             np.exp(target, out=target)
+            sums[t] = target.sum(dtype=np.float64)
 
     _run(exponentiate, live, workers)
+    total = float(sums.sum())
+    if abs(total - 1.0) > 1e-7:  # float32 rounding of the exponents: put the sum back on 1
+        factor = np.float32(1.0 / total)
+
+        def rescale(ts: np.ndarray) -> None:
+            for t in ts:
+                prob[t] *= factor
+
+        _run(rescale, live, workers)
     return prob
 
 
@@ -1003,11 +1017,6 @@ class SearchResult:
 
     def is_dominant(self, dominance_ratio: float) -> bool:
         return self.peak_ratio >= dominance_ratio
-
-    def on_window_edge(self) -> tuple[bool, bool]:
-        """Whether the best cell lies on the first or last column (x) / row (y) of the lattice."""
-        _, y, x = self.best_index
-        return x in (0, len(self.x_m) - 1), y in (0, len(self.y_m) - 1)
 
 
 def normalise(scores: np.ndarray, beta: float) -> np.ndarray:

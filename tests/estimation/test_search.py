@@ -321,3 +321,14 @@ def test_best_pose_alone_matches_the_full_search(building: tuple[Band, object]) 
     np.testing.assert_allclose(pose, full.pose, atol=1e-6)
     assert pose_error(pose, truth)[0] < 0.05
     assert seconds > 0
+
+
+@pytest.mark.parametrize("beta", [0.005, 0.04, 0.5])
+def test_large_pdfs_are_valid_posepdfs(building: tuple[Band, object], beta: float) -> None:
+    global_, scene = building
+    local = local_view(scene, np.array([8.1, 7.7, 0.9]), 6.0, 0.1, np.random.default_rng(8))
+    result = search(local, global_, SearchParams(beta=beta))
+    assert abs(float(result.prob.sum(dtype=np.float64)) - 1.0) < 2e-7
+    pdf = result.pdf  # PosePdf checks the sum to 1e-6, non-negativity, the lattices
+    assert pdf.prob.shape == (360, 160, 160)
+    assert pdf.best_index() == result.best_index
