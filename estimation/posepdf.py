@@ -77,8 +77,11 @@ class PosePdf:
         if not np.isfinite(prob).all() or prob.min() < 0:
             raise EstimationError("PosePdf: prob must be finite and non-negative")
         total = prob.sum()
-        if abs(total - 1.0) > 1e-6:
+        # A PDF summed in float32 over millions of cells is off by ~1e-6; renormalise such
+        # rounding, reject anything larger.
+        if abs(total - 1.0) > 1e-4:
             raise EstimationError(f"PosePdf: prob must sum to 1, sums to {total:.9g}")
+        prob /= total
         if lattices["yaw_rad"] * len(self.yaw_rad) > _TWO_PI + 1e-9:
             raise EstimationError("PosePdf: yaw_rad lattice covers more than 2π")
         prob.setflags(write=False)
