@@ -753,12 +753,12 @@ class PowerOn(Reply):
 
 @dataclass(frozen=True)
 class ResetAck(Reply):
-    pass
+    """91: the sensor acknowledged a reset; the 90 power-on message follows."""
 
 
 @dataclass(frozen=True)
 class IncorrectCommand(Reply):
-    pass
+    """92: the frame was fine but the command was not allowed (§4.3)."""
 
 
 @dataclass(frozen=True)
