@@ -43,7 +43,7 @@ def run_search_benchmark(
     *,
     repeats: int = 5,
     peer_rotations: int = 2,
-    peer_row_stride: int = 20,
+    peer_row_stride: int = 10,
     seed: int = 0,
 ) -> dict[str, Any]:
     """Time coopmap's search (median of ``repeats`` after a warm-up) and the per-pose loop on a
