@@ -47,14 +47,10 @@ _CONSISTENT_RAD = math.radians(30.0)
 
 
 def search_params(config: Config) -> SearchParams:
-    s = config.search
-    return SearchParams(
-        angular_resolution_rad=s.angular_resolution_rad,
-        free_weight=s.free_weight,
-        peak_radius_m=s.peak_radius_m,
-        peak_radius_rad=math.radians(s.peak_radius_deg),
-        dominance_ratio=s.dominance_ratio,
-    )
+    """The search's own configuration glue, so every ``search`` key (β, occupied level) applies."""
+    from estimation.localize import search_params as from_section
+
+    return from_section(config.search)
 
 
 @dataclass(frozen=True)
