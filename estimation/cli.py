@@ -540,7 +540,7 @@ def lms_emulate(
         while time.monotonic() < deadline:
             time.sleep(0.05)
     except KeyboardInterrupt:
-        pass
+        typer.echo("coopmap: interrupted: stopping the emulator", err=True)
     finally:
         emulator.close()
     state = emulator.state
@@ -585,7 +585,7 @@ def lms_record(
             if count % 50 == 0:
                 writer.flush()
     except KeyboardInterrupt:
-        pass
+        typer.echo("coopmap: interrupted: keeping what was recorded", err=True)
     except Exception:
         driver.close()
         # Keep what was recorded before the failure; leave nothing if nothing was.
