@@ -279,6 +279,9 @@ class GraphConfig(_Section):
     beacon_bearing_sigma_deg: float = Field(0.25, gt=0)
     global_min_sigma_m: float = Field(0.02, gt=0, description="floor on the search covariance")
     global_min_sigma_deg: float = Field(0.3, gt=0)
+    search_factors: bool = Field(
+        True, description="add the station-map searches (links, loop closures) as factors"
+    )
     robust: RobustKernel = "gnc_tls"
     gate_sigmas: float = Field(3.0, gt=0, description="s1/s2 gate in predicted standard devs")
     validator_mass: float = Field(

@@ -54,12 +54,15 @@ class Observe:
 class Localize:
     """A global-localization result: ``pdf`` over the pose of ``(robot, index)`` in the map frame
     (``reference`` None: matched against a fixed prior map) or in the frame of the earlier
-    station ``reference`` (matched against the part of this mission's map it built)."""
+    station ``reference`` (matched against the part of this mission's map it built).
+    ``peak_radius`` (m, rad) is the neighbourhood of the peak whose probability the factor's
+    covariance is fitted to; None: the configured ``search.peak_radius_*``."""
 
     robot: str
     index: int
     pdf: PosePdf
     reference: PoseRef | None = None
+    peak_radius: tuple[float, float] | None = None
 
 
 Event = Start | Move | Observe | Localize

@@ -415,8 +415,9 @@ class GraphBuilder:
         if reference == key:
             raise EstimationError(f"event {number}: a station cannot be localized against itself")
         mean = pdf.best_pose()
+        radius_m, radius_rad = event.peak_radius or (s.peak_radius_m, s.peak_radius_rad)
         cov_frame = floor_covariance(
-            pdf.covariance(s.peak_radius_m, s.peak_radius_rad),
+            pdf.covariance(radius_m, radius_rad),
             s.global_min_sigma_m,
             s.global_min_sigma_rad,
         )

@@ -7,22 +7,43 @@ mutual observations), expressed in the frame of the nearest of them: a dominant 
 ``Localize`` event, a between-factor from that station (loop closure) whose covariance comes
 from the PDF's peak. After the ``changes`` step, each robot's last sweep is localized against
 the final map (ceiling band, and a floor band for comparison): those results are reported.
+
+Before the loop closures, each station is also localized against its predecessor (a *link*).
+Mutual observations tie a station to the mapper poses around it, but the step from one station
+to the next passes through a turn in place measured only by odometry (a robot that has just
+turned cannot see the other's beacon behind it), so the station maps — each holding only the
+sweeps tied to its station by a mutual observation — are matched in a small window around the
+predicted relative pose. In a corridor such a match fixes the heading and the cross-track
+position but hardly the along-track one, so its factor's covariance is fitted to the whole
+probability near the peak (``_LINK_RADIUS``), not to the peak's own cell neighbourhood.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from scipy.stats import chi2
 
+from estimation import se2
 from estimation.config import Config
 from estimation.errors import EstimationError
 from estimation.events import Localize
+from estimation.graph import FactorSpec
 from estimation.keys import pose_key
-from estimation.search import SearchParams, windowed_search
+from estimation.search import (
+    SearchParams,
+    SearchResult,
+    correlate_all,
+    pose_lattice,
+    result_from_scores,
+    windowed_search,
+)
+from estimation.smoother import relative_covariances
 from mapping.band import Band, extract_band
 from mapping.errors import MapError
 from mapping.fusion import Scan as MapScan
@@ -33,7 +54,14 @@ from sensors.frames import pose2_matrix
 if TYPE_CHECKING:
     from estimation.pipeline import Dataset, Sweep
 
-__all__ = ["SearchRecord", "loop_closures", "relocalize", "search_params"]
+__all__ = [
+    "SEARCH_STAGES",
+    "SearchRecord",
+    "loop_closures",
+    "relocalize",
+    "search_params",
+    "station_links",
+]
 
 #: Older stations farther than this from a station are not searched against it.
 _NEIGHBOURHOOD_M = 12.0
@@ -42,8 +70,21 @@ _NEIGHBOURHOOD_M = 12.0
 #: axis, so matching them adds false peaks rather than information.
 _MIN_AGE = 4
 #: A dominant peak becomes a factor only if it lies this close to the predicted pose.
-_CONSISTENT_M = 2.0
-_CONSISTENT_RAD = math.radians(30.0)
+#: A loop-closure search covers ±``_LOOP_SIGMAS`` standard deviations of the predicted
+#: relative pose (from the graph's joint marginals), within these bounds (window side, m; yaw
+#: reach, rad); its dominant peak becomes a factor when it passes the χ² gate against the
+#: prediction (99.9 %, three degrees of freedom).
+_LOOP_SIGMAS = 3.0
+_LOOP_WINDOW_M = (4.0, 16.0)
+_LOOP_YAW_RAD = (math.radians(5.0), math.radians(30.0))
+_LOOP_GATE = float(chi2.ppf(0.999, 3))
+#: A link searches this square window (side, m) around the predicted relative pose, accepts a
+#: best pose this close to the prediction, and fits its covariance to this neighbourhood.
+_LINK_WINDOW_M = 1.0
+_LINK_CONSISTENT_M = 0.35
+_LINK_CONSISTENT_RAD = math.radians(12.0)
+_LINK_RADIUS = (0.5, math.radians(5.0))
+_LINK_YAW_RAD = math.radians(20.0)
 
 
 def search_params(config: Config) -> SearchParams:
@@ -59,6 +100,7 @@ class SearchRecord:
 
     station: str  # "a3"
     against: str  # the anchor station's label, or "map"
+    kind: str  # "link" (predecessor), "loop" (older stations) or "relocalize"
     band: str  # "ceiling" or "floor"
     pose: tuple[float, float, float]  # in the anchor's (or the map's) frame
     peak_ratio: float
@@ -117,62 +159,177 @@ def _stations(dataset: Dataset, sweeps: list[Sweep]) -> list[tuple[str, int, flo
     return [(r, i, t, s) for (r, i), (t, s) in sorted(stations.items(), key=lambda kv: kv[1][0])]
 
 
-def loop_closures(
-    dataset: Dataset, sweeps: list[Sweep], estimate: dict[int, np.ndarray]
+def _search_near(
+    local: Band,
+    global_: Band,
+    params: SearchParams,
+    predicted: np.ndarray,
+    side_m: float,
+    yaw_reach_rad: float,
+) -> tuple[SearchResult, bool]:
+    """Every pose of the square window of ``side_m`` centred on the predicted position (moved
+    inside the map if it lies outside) within ``yaw_reach_rad`` of the predicted yaw, on the
+    search's lattices: the PDF of that window (a corridor's 180° twin lies outside it), and
+    whether the best pose lies on the window's border."""
+    x0, x1, y0, y1 = global_.extent()
+    cx, cy = float(np.clip(predicted[0], x0, x1)), float(np.clip(predicted[1], y0, y1))
+    half = side_m / 2
+    x_m, y_m, _ = pose_lattice(local, global_, (cx - half, cx + half, cy - half, cy + half))
+    step = params.angular_resolution_rad
+    reach = math.ceil(yaw_reach_rad / step)
+    yaw_rad = (round(predicted[2] / step) + np.arange(-reach, reach + 1)) * step
+    started = time.perf_counter()
+    scores = correlate_all(local, global_, x_m, y_m, yaw_rad, params.metric)
+    result = result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_))
+    _, by, bx = result.best_index
+    return result, bx in (0, len(x_m) - 1) or by in (0, len(y_m) - 1)
+
+
+def _own_sweeps(
+    station: tuple[str, int, float, list[Sweep]], factors: list[FactorSpec]
+) -> list[Sweep]:
+    """The sweeps of a station's dwells taken at poses tied to it by a mutual observation (its
+    own and the mapper's around it): the others sit there only through odometry."""
+    key = pose_key(station[0], station[1])
+    tied = {key}
+    for factor in factors:
+        if factor.kind == "mutual" and key in factor.keys:
+            tied.update(factor.keys)
+    return [s for s in station[3] if pose_key(s.robot, s.index) in tied]
+
+
+def station_links(
+    dataset: Dataset,
+    sweeps: list[Sweep],
+    estimate: dict[int, np.ndarray],
+    factors: list[FactorSpec],
+    back: tuple[int, ...] = (1,),
 ) -> tuple[list[Localize], list[SearchRecord]]:
-    """Search each station against the older stations near it; dominant peaks become events."""
+    """Search each station's map against the maps of the stations ``back`` places before it,
+    around the predicted relative pose; a best pose consistent with the prediction becomes a
+    ``Localize`` event."""
     config = dataset.config
     params = search_params(config)
-    stations = _stations(dataset, sweeps)
+    stations = [s for s in _stations(dataset, sweeps) if pose_key(s[0], s[1]) in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
-    for n, (robot, index, t, station_sweeps) in enumerate(stations):
-        key = pose_key(robot, index)
-        if key not in estimate or n < _MIN_AGE:
-            continue
-        here = estimate[key]
-        older = [
-            s for s in stations[: max(0, n - _MIN_AGE + 1)]
-            if pose_key(s[0], s[1]) in estimate
-            and math.dist(estimate[pose_key(s[0], s[1])][:2], here[:2]) < _NEIGHBOURHOOD_M
-        ]  # fmt: skip
-        if not older:
-            continue
-        anchor = min(older, key=lambda s: math.dist(estimate[pose_key(s[0], s[1])][:2], here[:2]))
-        anchor_pose = estimate[pose_key(anchor[0], anchor[1])]
-        local = _band(station_sweeps, here, estimate, config, "ceiling")
-        global_ = _band(
-            [s for st in older for s in st[3]], anchor_pose, estimate, config, "ceiling"
-        )
+    maps: dict[int, Band | None] = {}
+
+    def station_map(station: tuple[str, int, float, list[Sweep]]) -> Band | None:
+        key = pose_key(station[0], station[1])
+        if key not in maps:
+            own = _own_sweeps(station, factors)
+            maps[key] = _band(own, estimate[key], estimate, config, "ceiling")
+        return maps[key]
+
+    pairs = [(stations[n - k], stations[n]) for n in range(len(stations)) for k in back if n >= k]
+    for previous, (robot, index, t, station_sweeps) in pairs:
+        key, anchor_key = pose_key(robot, index), pose_key(previous[0], previous[1])
+        local = station_map((robot, index, t, station_sweeps))
+        global_ = station_map(previous)
         if local is None or global_ is None:
             continue
-        predicted = np.linalg.inv(pose2_matrix(*anchor_pose)) @ pose2_matrix(*here)
+        predicted = se2.between(estimate[anchor_key], estimate[key])
         started = time.perf_counter()
         try:
-            found = windowed_search(
-                local, global_, params, predicted[:2, 3], config.search.window_m,
-                2 * config.search.window_m,
-            )  # fmt: skip
+            result, _ = _search_near(
+                local, global_, params, predicted, _LINK_WINDOW_M, _LINK_YAW_RAD
+            )
         except EstimationError:
             continue
-        result = found.result
-        predicted_yaw = math.atan2(predicted[1, 0], predicted[0, 0])
         consistent = (
-            math.dist(result.pose[:2], predicted[:2, 3]) < _CONSISTENT_M
-            and abs(math.remainder(result.pose[2] - predicted_yaw, 2 * math.pi)) < _CONSISTENT_RAD
+            math.dist(result.pose[:2], predicted[:2]) < _LINK_CONSISTENT_M
+            and abs(math.remainder(result.pose[2] - predicted[2], 2 * math.pi))
+            < _LINK_CONSISTENT_RAD
         )
-        use = found.dominant and consistent
+        if consistent:
+            events.append(
+                Localize(robot, index, result.pdf, (previous[0], previous[1]), _LINK_RADIUS)
+            )
+        records.append(
+            SearchRecord(
+                station=f"{robot}{index}", against=f"{previous[0]}{previous[1]}",
+                band="ceiling", kind="link",
+                pose=tuple(float(v) for v in result.pose),  # type: ignore[arg-type]
+                peak_ratio=float(result.peak_ratio), dominant=result.is_dominant(
+                    params.dominance_ratio), used=consistent,
+                seconds=time.perf_counter() - started, time_s=t,
+            )
+        )  # fmt: skip
+    return events, records
+
+
+def loop_closures(
+    dataset: Dataset,
+    sweeps: list[Sweep],
+    estimate: dict[int, np.ndarray],
+    factors: list[FactorSpec],
+) -> tuple[list[Localize], list[SearchRecord]]:
+    """Search each station against the older stations near it, in windows around the predicted
+    pose that grow until the peak is dominant; a dominant peak consistent with the prediction
+    becomes a ``Localize`` event."""
+    config = dataset.config
+    params = search_params(config)
+    stations = [s for s in _stations(dataset, sweeps) if pose_key(s[0], s[1]) in estimate]
+    events: list[Localize] = []
+    records: list[SearchRecord] = []
+    relative = relative_covariances(factors, estimate)
+    for n, station in enumerate(stations):
+        robot, index, t, _ = station
+        here = estimate[pose_key(robot, index)]
+
+        def distance(s: tuple[str, int, float, list[Sweep]]) -> float:
+            return math.dist(estimate[pose_key(s[0], s[1])][:2], here[:2])  # noqa: B023
+
+        older = [s for s in stations[: max(0, n - _MIN_AGE + 1)] if distance(s) < _NEIGHBOURHOOD_M]
+        if not older:
+            continue
+        anchor = min(older, key=distance)
+        anchor_pose = estimate[pose_key(anchor[0], anchor[1])]
+        local = _band(_own_sweeps(station, factors), here, estimate, config, "ceiling")
+        global_ = _band(
+            [s for st in older for s in _own_sweeps(st, factors)], anchor_pose, estimate, config,
+            "ceiling",
+        )  # fmt: skip
+        if local is None or global_ is None:
+            continue
+        anchor_key = pose_key(anchor[0], anchor[1])
+        predicted = se2.between(anchor_pose, here)
+        uncertainty = relative(anchor_key, pose_key(robot, index))
+        sigma_m = math.sqrt(max(0.0, float(np.linalg.eigvalsh(uncertainty[:2, :2])[-1])))
+        sigma_rad = math.sqrt(max(0.0, float(uncertainty[2, 2])))
+        side = float(np.clip(2 * _LOOP_SIGMAS * sigma_m, *_LOOP_WINDOW_M))
+        reach = float(np.clip(_LOOP_SIGMAS * sigma_rad, *_LOOP_YAW_RAD))
+        started = time.perf_counter()
+        try:
+            result, on_edge = _search_near(local, global_, params, predicted, side, reach)
+        except EstimationError:
+            continue
+        dominant = result.is_dominant(params.dominance_ratio) and not on_edge
+        offset = se2.log(se2.between(predicted, result.pose))
+        chi2_value = float(offset @ np.linalg.solve(uncertainty + result.covariance, offset))
+        use = dominant and chi2_value < _LOOP_GATE
         if use:
             events.append(Localize(robot, index, result.pdf, reference=(anchor[0], anchor[1])))
         records.append(
             SearchRecord(
                 station=f"{robot}{index}", against=f"{anchor[0]}{anchor[1]}", band="ceiling",
-                pose=tuple(float(v) for v in result.pose),  # type: ignore[arg-type]
-                peak_ratio=float(result.peak_ratio), dominant=found.dominant, used=use,
+                kind="loop", pose=tuple(float(v) for v in result.pose),  # type: ignore[arg-type]
+                peak_ratio=float(result.peak_ratio), dominant=dominant, used=use,
                 seconds=time.perf_counter() - started, time_s=t,
             )
         )  # fmt: skip
     return events, records
+
+
+#: The searches inside a mission, in order; the graph is optimized again after each stage that
+#: added factors: the links fix the stations' headings, which the loop closures' predictions
+#: (and windows) then rely on.
+SEARCH_STAGES = (
+    ("links to the previous station", station_links),
+    ("links to earlier stations", functools.partial(station_links, back=(2, 3))),
+    ("loop closures", loop_closures),
+)
 
 
 def relocalize(
@@ -210,6 +367,7 @@ def relocalize(
                 records.append(
                     SearchRecord(
                         station=f"{sweep.robot}{sweep.index}", against="map", band=which,
+                        kind="relocalize",
                         pose=tuple(float(v) for v in found.result.pose),  # type: ignore[arg-type]
                         peak_ratio=float(found.result.peak_ratio), dominant=found.dominant,
                         used=False, seconds=time.perf_counter() - started,

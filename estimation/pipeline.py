@@ -29,7 +29,7 @@ from estimation.errors import EstimationError
 from estimation.events import Event, Move, Observe, Start
 from estimation.graph import FactorSpec, GraphBuilder, GraphSettings
 from estimation.keys import pose_key, split_key
-from estimation.loopclosure import loop_closures, records_json, relocalize
+from estimation.loopclosure import SEARCH_STAGES, SearchRecord, records_json, relocalize
 from estimation.rig import beacon_parameters, mirror_geometry
 from estimation.smoother import optimize_batch
 from mapping.fusion import Scan as MapScan
@@ -524,12 +524,20 @@ def run_batch(
     result = optimize_batch(factors, initial, robust=config.graph.robust)
     timings["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    if progress is not None:
-        progress("global localization: station maps against older ones")
-    closures, records = loop_closures(dataset, _mapping_sweeps(dataset, sweeps), result.estimate)
-    if closures:
-        for event in closures:
+    records: list[SearchRecord] = []
+    added = 0
+    for name, stage in SEARCH_STAGES:
+        if progress is not None:
+            progress(f"global localization: {name}")
+        found, stage_records = stage(
+            dataset, _mapping_sweeps(dataset, sweeps), result.estimate, builder.factors
+        )
+        records += stage_records
+        if not config.graph.search_factors or not found:
+            continue
+        for event in found:
             builder.add(event)
+        added += len(found)
         keep = _connected(builder.factors, gauge)
         factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
         initial = {
@@ -542,7 +550,7 @@ def run_batch(
         "graph_error": result.error,
         "global_localization": {
             "searches": records_json(records),
-            "factors": len(closures),
+            "factors": added,
             "relocalization": records_json(relocalized),
         },
     }
@@ -601,11 +609,18 @@ def run_isam(
             return None
     timings["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    closures, records = loop_closures(
-        dataset, _mapping_sweeps(dataset, sweeps), smoother.estimate()
-    )
-    for event in closures:
-        smoother.add(event)
+    records: list[SearchRecord] = []
+    added = 0
+    for _, stage in SEARCH_STAGES:
+        found, stage_records = stage(
+            dataset, _mapping_sweeps(dataset, sweeps), smoother.estimate(),
+            smoother.builder.factors,
+        )  # fmt: skip
+        records += stage_records
+        if config.graph.search_factors:
+            for event in found:
+                smoother.add(event)
+            added += len(found)
     estimate = smoother.estimate()
     relocalized = relocalize(dataset, sweeps, estimate)
     timings["search"] = time.perf_counter() - clock
@@ -615,7 +630,7 @@ def run_isam(
     output = _finish(
         dataset, streams, sweeps, counts, builder, factors, estimate,
         np.ones(len(factors), dtype=bool), [], timings, out,
-        {"global_localization": {"searches": records_json(records), "factors": len(closures),
+        {"global_localization": {"searches": records_json(records), "factors": added,
                                  "relocalization": records_json(relocalized)},
          "isam2": {"events": smoother.events, "resumed": resume,
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,

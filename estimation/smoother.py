@@ -21,7 +21,7 @@ import hashlib
 import itertools
 import time
 import zipfile
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -53,6 +53,7 @@ __all__ = [
     "factor_fingerprint",
     "lago_initial_values",
     "optimize_batch",
+    "relative_covariances",
     "truncated_cost",
 ]
 
@@ -161,6 +162,30 @@ def optimize_batch(
         seconds=time.perf_counter() - start,
         covariances=covariances,
     )
+
+
+def relative_covariances(
+    factors: Sequence[FactorSpec], estimate: Mapping[int, np.ndarray]
+) -> Callable[[int, int], np.ndarray]:
+    """A function (a, b) → the 3×3 covariance of T_a_b = a⁻¹·b (in the tangent space at T_a_b,
+    as a between-factor's) from the joint marginal of a and b in the graph of ``factors`` at
+    ``estimate``; factors on poses outside ``estimate`` are left out."""
+    kept = [f for f in factors if all(k in estimate for k in f.keys)]
+    try:
+        marginals = gtsam.Marginals(to_gtsam_graph(kept), to_gtsam_values(estimate))
+    except RuntimeError as exc:
+        raise EstimationError(f"marginal covariances failed: {exc}") from exc
+
+    def covariance(a: int, b: int) -> np.ndarray:
+        joint = marginals.jointMarginalCovariance(gtsam.KeyVector([a, b]))
+        full = np.block([[joint.at(a, a), joint.at(a, b)], [joint.at(b, a), joint.at(b, b)]])
+        # a·Exp(δa) and b·Exp(δb) give T_a_b·Exp(−Ad(T_a_b⁻¹)·δa + δb) to first order.
+        T_a_b = se2.between(estimate[a], estimate[b])
+        H = np.hstack([-se2.adjoint(se2.inverse(T_a_b)), np.eye(3)])
+        out = H @ full @ H.T
+        return np.asarray(0.5 * (out + out.T))
+
+    return covariance
 
 
 def truncated_cost(

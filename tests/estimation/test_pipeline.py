@@ -125,7 +125,8 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
     assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
     for robot, poses in whole.poses.items():
         for index, pose in poses.items():
-            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-4)  # 0.1 mm
+            # 0.5 mm: the station searches run on each run's own (relinearized) estimate
+            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=5e-4)
     assert not (tmp_path / ".cut.checkpoint.npz").exists()
     with pytest.raises(Exception, match="no checkpoint to resume from"):
         run_isam(dataset, tmp_path / "never", resume=True)
