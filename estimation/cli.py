@@ -280,6 +280,32 @@ def evaluate(
             f"mutual: {mutual['events']} events, {mutual['rejected']} gated out, median error "
             f"{mutual['median_m'] * 100:.1f} cm / {mutual['median_deg']:.2f}°"
         )
+    gate = mutual.get("gate")
+    if gate:
+        console.print(
+            f"gate: accepted {gate['accepted_true']} true / {gate['accepted_false']} false, "
+            f"rejected {gate['rejected_true']} true / {gate['rejected_false']} false"
+            f" (+{gate['rejected_without_pose']} without a pose)"
+        )
+    found = metrics.get("global_localization", {})
+    for kind, name in (("link", "station links"), ("loop", "loop closures")):
+        entry = found.get(kind)
+        if entry and entry.get("used"):
+            console.print(
+                f"{name}: {entry['used']} of {entry['searches']} searches used, "
+                f"{entry['used_within_10cm_1deg']} within 10 cm and 1°, median error "
+                f"{entry['used_median_m'] * 100:.1f} cm / {entry['used_median_deg']:.2f}°, max "
+                f"{entry['used_max_m'] * 100:.1f} cm / {entry['used_max_deg']:.2f}°"
+            )
+        elif entry:
+            console.print(f"{name}: none of {entry['searches']} searches used")
+    validation = found.get("validation")
+    if validation:
+        console.print(
+            f"validator: {validation['checks']} search results checked, "
+            f"{len(validation['outside'])} outside their region, "
+            f"{len(validation['flagged'])} factors flagged"
+        )
     console.print(
         f"map at {quality['resolution_m']:g} m: precision {quality['precision']:.3f}, "
         f"recall {quality['recall']:.3f} ({quality['occupied']:,} occupied cells)"

@@ -112,15 +112,17 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         metrics["robots"][robot] = entry
         all_est.append(estimate)
         all_true.append(truth)
-    errors = _mutual_errors(dataset, result)
+    rows = _mutual_rows(dataset, report)
+    accepted = np.array([r[:2] for r in rows if r[2]]).reshape(-1, 2)
     metrics["mutual"] = {
         "events": report["observations"],
         "accepted": report["observations"] - len(report["gate_rejections"]),
         "rejected": len(report["gate_rejections"]),
         "outliers_after_gnc": len(report["outlier_factors"]),
-        "median_m": float(np.median(errors[:, 0])) if len(errors) else None,
-        "median_deg": float(np.degrees(np.median(errors[:, 1]))) if len(errors) else None,
-        "max_m": float(errors[:, 0].max()) if len(errors) else None,
+        "median_m": float(np.median(accepted[:, 0])) if len(accepted) else None,
+        "median_deg": float(np.degrees(np.median(accepted[:, 1]))) if len(accepted) else None,
+        "max_m": float(accepted[:, 0].max()) if len(accepted) else None,
+        "gate": _gate_table(rows),
     }
     metrics["global_localization"] = _search_errors(dataset, report.get("global_localization", {}))
     metrics["map"] = map_quality(load_map(result / "map.npz"), dataset / "world.yaml")
@@ -134,34 +136,53 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     return metrics
 
 
-def _mutual_errors(dataset: Path, result: Path) -> np.ndarray:
-    """|error| (m, rad) of each mutual edge of graph.g2o against the true relative pose."""
-    from estimation.pipeline import load_dataset
-    from estimation.trajio import read_g2o
+#: A mutual observation is "true" when its relative pose is this close to the truth.
+TRUE_M, TRUE_DEG = 0.1, 1.0
 
-    graph_path = result / "graph.g2o"
-    if not graph_path.is_file():
-        return np.zeros((0, 2))
-    report = json.loads((result / "report.json").read_text(encoding="utf-8"))
-    labels = {v: k for k, v in report.get("g2o_vertices", {}).items()}
+
+def _relative_truth(
+    dataset: Path, stops: dict[str, dict[int, float]], a: str, b: str
+) -> np.ndarray:
+    """The true T_a_b of two pose labels ("a3", "b4") at their stop times."""
+    pa, pb = (
+        _truth_at(dataset, label[0], np.array([stops[label[0]][int(label[1:])]]))[0]
+        for label in (a, b)
+    )
+    c, s = math.cos(pa[2]), math.sin(pa[2])
+    dx, dy = pb[0] - pa[0], pb[1] - pa[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, pb[2] - pa[2]])
+
+
+def _mutual_rows(dataset: Path, report: dict[str, Any]) -> list[tuple[float, float, bool]]:
+    """(|error| m, |error| rad or NaN, accepted) of every mutual observation the gate saw."""
+    from estimation.pipeline import load_dataset
+
     data = load_dataset(dataset)
     stops = {robot: data.stop_times(robot) for robot in data.robots}
-    graph = read_g2o(graph_path)
-    out = []
-    for (i, j), measured in zip(graph.edges, graph.measurements, strict=True):
-        li, lj = labels.get(int(i)), labels.get(int(j))
-        if li is None or lj is None or li[0] == lj[0]:
-            continue  # odometry edges join poses of one robot
-        a, b = (
-            _truth_at(dataset, label[0], np.array([stops[label[0]][int(label[1:])]]))[0]
-            for label in (li, lj)
-        )
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        true_rel = np.array([c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]])
-        out.append([math.hypot(*(measured[:2] - true_rel[:2])),
-                    abs(math.remainder(measured[2] - true_rel[2], 2 * math.pi))])  # fmt: skip
-    return np.array(out).reshape(-1, 2)
+    rows = []
+    for row in report.get("mutual_observations", []):
+        measured = row.get("measurement")
+        if measured is None:
+            rows.append((math.nan, math.nan, bool(row["accepted"])))
+            continue
+        truth = _relative_truth(dataset, stops, *row["pair"])
+        rows.append((math.dist(measured[:2], truth[:2]),
+                     abs(math.remainder(measured[2] - truth[2], 2 * math.pi)),
+                     bool(row["accepted"])))  # fmt: skip
+    return rows
+
+
+def _gate_table(rows: list[tuple[float, float, bool]]) -> dict[str, int]:
+    """The gate's decisions against the truth: a measurement is true within TRUE_M / TRUE_DEG."""
+    table = {"accepted_true": 0, "accepted_false": 0, "rejected_true": 0, "rejected_false": 0,
+             "rejected_without_pose": 0}  # fmt: skip
+    for error_m, error_rad, accepted in rows:
+        if math.isnan(error_m):
+            table["rejected_without_pose" if not accepted else "accepted_false"] += 1
+            continue
+        true = error_m < TRUE_M and math.degrees(error_rad) < TRUE_DEG
+        table[f"{'accepted' if accepted else 'rejected'}_{'true' if true else 'false'}"] += 1
+    return table
 
 
 def _search_errors(dataset: Path, found: dict[str, Any]) -> dict[str, Any]:
@@ -180,26 +201,28 @@ def _search_errors(dataset: Path, found: dict[str, Any]) -> dict[str, Any]:
         return (math.dist(pose[:2], expected[:2]),
                 abs(math.degrees(math.remainder(pose[2] - expected[2], 2 * math.pi))))  # fmt: skip
 
-    out: dict[str, Any] = {"factors": found.get("factors", 0)}
-    rows = []
+    out: dict[str, Any] = {"factors": found.get("factors", 0),
+                           "validation": found.get("validation")}  # fmt: skip
+    rows: dict[str, list[tuple[float, float, bool]]] = {}
     for record in found.get("searches", []):
-        a, b = truth(record["against"]), truth(record["station"])
-        c, s = math.cos(a[2]), math.sin(a[2])
-        dx, dy = b[0] - a[0], b[1] - a[1]
-        relative = np.array([c * dx + s * dy, -s * dx + c * dy, b[2] - a[2]])
-        rows.append((*error(record["pose"], relative), record["used"]))
-    out["searches"] = len(rows)
-    if rows:
-        e = np.array(rows, dtype=float)
+        relative = _relative_truth(dataset, stops, record["against"], record["station"])
+        kind = record.get("kind", "loop")
+        rows.setdefault(kind, []).append((*error(record["pose"], relative), record["used"]))
+    out["searches"] = sum(len(r) for r in rows.values())
+    for kind, kind_rows in sorted(rows.items()):
+        e = np.array(kind_rows, dtype=float)
         used = e[:, 2] > 0
-        out.update(
-            median_m=float(np.median(e[:, 0])),
-            median_deg=float(np.median(e[:, 1])),
-            max_m=float(e[:, 0].max()),
-            max_deg=float(e[:, 1].max()),
-            used=int(used.sum()),
-            used_max_m=float(e[used, 0].max()) if used.any() else None,
-        )
+        entry: dict[str, Any] = {"searches": len(e), "used": int(used.sum()),
+                                 "median_m": float(np.median(e[:, 0])),
+                                 "median_deg": float(np.median(e[:, 1]))}  # fmt: skip
+        if used.any():
+            u = e[used]
+            within = (u[:, 0] < 0.1) & (u[:, 1] < 1.0)
+            entry.update(used_median_m=float(np.median(u[:, 0])),
+                         used_median_deg=float(np.median(u[:, 1])),
+                         used_max_m=float(u[:, 0].max()), used_max_deg=float(u[:, 1].max()),
+                         used_within_10cm_1deg=int(within.sum()))  # fmt: skip
+        out[kind] = entry
     for band in ("ceiling", "floor"):
         errors = []
         for record in found.get("relocalization", []):

@@ -146,10 +146,13 @@ class FactorSpec:
 
 @dataclass(frozen=True)
 class Rejection:
-    """An event the gate kept out of the graph, and why."""
+    """An event the gate kept out of the graph, and why; for a mutual observation, the poses it
+    joined and the relative pose it measured (None where the geometry gave none)."""
 
     event: int
     reason: str
+    keys: tuple[int, ...] = ()
+    measurement: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -366,17 +369,19 @@ class GraphBuilder:
         try:
             check_observation(*z, s.beacon_offset_m)
         except EstimationError as exc:
-            return self._reject(number, str(exc))
+            return self._reject(number, str(exc), (ka, kc))
         fix = localize_mutual(
             *z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad, s.gate_sigmas, "ml"
         )
+        T, cov = mutual_between(fix.pose, fix.covariance, s.scanner_x_m)
         if not fix.accepted:
             return self._reject(
                 number,
                 f"s1/s2 gate: |s1 - s2| = {abs(fix.gap_m):.3f} m is {fix.gap_sigmas:.1f} sigma "
                 f"(limit {s.gate_sigmas:g})",
+                (ka, kc),
+                T,
             )
-        T, cov = mutual_between(fix.pose, fix.covariance, s.scanner_x_m)
         predicted = self._predict(ra, ia, rc, ic)
         if predicted is not None:
             T_pred, cov_pred = predicted
@@ -387,6 +392,8 @@ class GraphBuilder:
                     number,
                     f"prediction gate: Mahalanobis² {d2:.1f} against the pose predicted from "
                     f"the last fix and odometry (limit {self._gate_chi2:.1f})",
+                    (ka, kc),
+                    T,
                 )
         values: dict[int, np.ndarray] = {}
         if kc not in self.guesses:
@@ -446,8 +453,14 @@ class GraphBuilder:
 
     # -- gate helpers ----------------------------------------------------------------------
 
-    def _reject(self, number: int, reason: str) -> Increment:
-        return Increment(number, rejection=Rejection(number, reason))
+    def _reject(
+        self,
+        number: int,
+        reason: str,
+        keys: tuple[int, ...] = (),
+        measurement: np.ndarray | None = None,
+    ) -> Increment:
+        return Increment(number, rejection=Rejection(number, reason, keys, measurement))
 
     def _motion(self, robot: str, start: int, end: int) -> tuple[np.ndarray, np.ndarray] | None:
         """T_start_end of one robot by its odometry, with covariance; None if not chained."""

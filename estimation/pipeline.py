@@ -28,10 +28,11 @@ from estimation.config import Config, ConfigError, config_from_mapping
 from estimation.errors import EstimationError
 from estimation.events import Event, Move, Observe, Start
 from estimation.graph import FactorSpec, GraphBuilder, GraphSettings
-from estimation.keys import pose_key, split_key
+from estimation.keys import key_label, pose_key, split_key
 from estimation.loopclosure import SEARCH_STAGES, SearchRecord, records_json, relocalize
 from estimation.rig import beacon_parameters, mirror_geometry
 from estimation.smoother import optimize_batch
+from estimation.validate import validate_and_repair
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams, OccupancyGrid
@@ -428,6 +429,27 @@ def _prepare(
     return dataset, streams, events, sweeps, counts, builder, timings
 
 
+def _observation_rows(
+    builder: GraphBuilder, factors: list[FactorSpec], inliers: np.ndarray
+) -> list[dict[str, Any]]:
+    """Every mutual observation the gate saw: the poses it joins, the relative pose it measured,
+    whether the gate accepted it and whether the optimizer kept it (for ``evaluate``)."""
+    rows: list[dict[str, Any]] = []
+    for factor, inlier in zip(factors, inliers, strict=True):
+        if factor.kind == "mutual":
+            rows.append({"event": factor.event, "pair": [key_label(k) for k in factor.keys],
+                         "measurement": [float(v) for v in factor.measurement],
+                         "accepted": True, "inlier": bool(inlier)})  # fmt: skip
+    for rejection in builder.rejections:
+        if len(rejection.keys) == 2:
+            measured = rejection.measurement
+            rows.append({"event": rejection.event,
+                         "pair": [key_label(k) for k in rejection.keys],
+                         "measurement": None if measured is None else [float(v) for v in measured],
+                         "accepted": False, "reason": rejection.reason})  # fmt: skip
+    return sorted(rows, key=lambda row: row["event"])
+
+
 def _finish(
     dataset: Dataset,
     streams: dict[str, RobotStream],
@@ -484,6 +506,7 @@ def _finish(
         "observations": counts["observations"],
         "unseen_pairs": counts["unseen"],
         "gate_rejections": [r.reason for r in builder.rejections],
+        "mutual_observations": _observation_rows(builder, factors, inliers),
         "factors": len(factors),
         "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
         "dropped_poses": [f"{split_key(k)[0]}{split_key(k)[1]}" for k in dropped],
@@ -544,6 +567,24 @@ def run_batch(
             k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
         }
         result = optimize_batch(factors, initial, robust=config.graph.robust)
+    validation = None
+    if added:
+        # The validator (DESIGN §5): optimized stations against their search PDFs; a factor
+        # that drags stations out of their regions is disabled and the graph solved again.
+        searches = {
+            k: [(pdf, ref) for pdf, ref in found if ref is None or ref in keep]
+            for k, found in builder.pdfs.items()
+            if k in keep
+        }
+        result, rounds, _ = validate_and_repair(
+            factors, {k: result.estimate[k] for k in initial}, searches,
+            config.graph.validator_mass, config.graph.robust,
+        )  # fmt: skip
+        validation = {
+            "checks": len(rounds[-1].checks),
+            "outside": [c.describe() for c in rounds[-1].failed],
+            "flagged": [factors[i].describe() for r in rounds for i in r.flagged],
+        }
     relocalized = relocalize(dataset, sweeps, result.estimate)
     timings["search"] = time.perf_counter() - clock
     extra = {
@@ -551,6 +592,7 @@ def run_batch(
         "global_localization": {
             "searches": records_json(records),
             "factors": added,
+            "validation": validation,
             "relocalization": records_json(relocalized),
         },
     }
