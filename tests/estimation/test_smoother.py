@@ -244,3 +244,25 @@ def test_huber_and_cauchy_kernels_soften_a_wrong_loop_closure(mission) -> None: 
         smoother = IncrementalSmoother(kernel=kernel).run(events)  # type: ignore[arg-type]
         diff = as_array(smoother.estimate(), keys) - as_array(batch.estimate, keys)
         assert np.hypot(diff[:, 0], diff[:, 1]).max() < 0.05
+
+
+def test_relative_covariance_equals_the_composed_odometry() -> None:
+    from estimation.graph import FactorSpec
+    from estimation.smoother import relative_covariances
+
+    step_a, step_b = np.array([1.0, 0.5, 0.4]), np.array([1.0, -0.2, 0.3])
+    q = np.diag([0.01, 0.02, 0.003])
+    factors = [
+        FactorSpec("prior", (1,), np.zeros(3), np.eye(3) * 1e-12, 0),
+        FactorSpec("odometry", (1, 2), step_a, q, 1),
+        FactorSpec("odometry", (2, 3), step_b, q, 2),
+    ]
+    estimate = {1: np.zeros(3), 2: step_a, 3: se2.compose(step_a, step_b)}
+    relative = relative_covariances(factors, estimate)
+    pose, expected = se2.propagate_compose(np.zeros(3), np.zeros((3, 3)), step_a, q)
+    pose, expected = se2.propagate_compose(pose, expected, step_b, q)
+    np.testing.assert_allclose(relative(1, 3), expected, atol=1e-9)
+    np.testing.assert_allclose(relative(2, 3), q, atol=1e-9)  # one step, whatever came before
+    # A loop closure shrinks the uncertainty between its ends below the chain's.
+    closed = [*factors, FactorSpec("global", (1, 3), estimate[3], q, 3)]
+    assert np.linalg.det(relative_covariances(closed, estimate)(1, 3)) < np.linalg.det(expected)
