@@ -12,6 +12,7 @@ re-fused into the global occupancy grid at its optimized pose. Outputs follow DE
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -429,6 +430,11 @@ def _prepare(
     return dataset, streams, events, sweeps, counts, builder, timings
 
 
+def _as_used(records: list[SearchRecord], factors: bool) -> list[SearchRecord]:
+    """The records as the run used them: none became a factor when the searches are off."""
+    return records if factors else [dataclasses.replace(r, used=False) for r in records]
+
+
 def _observation_rows(
     builder: GraphBuilder, factors: list[FactorSpec], inliers: np.ndarray
 ) -> list[dict[str, Any]]:
@@ -555,7 +561,7 @@ def run_batch(
         found, stage_records = stage(
             dataset, _mapping_sweeps(dataset, sweeps), result.estimate, builder.factors
         )
-        records += stage_records
+        records += _as_used(stage_records, config.graph.search_factors)
         if not config.graph.search_factors or not found:
             continue
         for event in found:
@@ -658,7 +664,7 @@ def run_isam(
             dataset, _mapping_sweeps(dataset, sweeps), smoother.estimate(),
             smoother.builder.factors,
         )  # fmt: skip
-        records += stage_records
+        records += _as_used(stage_records, config.graph.search_factors)
         if config.graph.search_factors:
             for event in found:
                 smoother.add(event)
