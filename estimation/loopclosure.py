@@ -1,21 +1,25 @@
 """Global localization inside a mission: station maps, ceiling bands, searches (DESIGN §5, §7).
 
-Every reference station gets a local map — the sweeps of its dwells fused in the station's own
-frame — and its ceiling band. Each station is then searched against the map of the *older*
-stations near it (not its immediate predecessor, which already constrains it through the
-mutual observations), expressed in the frame of the nearest of them: a dominant peak becomes a
-``Localize`` event, a between-factor from that station (loop closure) whose covariance comes
-from the PDF's peak. After the ``changes`` step, each robot's last sweep is localized against
-the final map (ceiling band, and a floor band for comparison): those results are reported.
+Every reference station gets a local map — the sweeps of its dwells taken at poses tied to it
+by a mutual observation (its own, and the mapper's around it), fused in the station's frame —
+and its ceiling band. The searches run in stages (``SEARCH_STAGES``), the graph optimized again
+after each:
 
-Before the loop closures, each station is also localized against its predecessor (a *link*).
-Mutual observations tie a station to the mapper poses around it, but the step from one station
-to the next passes through a turn in place measured only by odometry (a robot that has just
-turned cannot see the other's beacon behind it), so the station maps — each holding only the
-sweeps tied to its station by a mutual observation — are matched in a small window around the
-predicted relative pose. In a corridor such a match fixes the heading and the cross-track
-position but hardly the along-track one, so its factor's covariance is fitted to the whole
-probability near the peak (``_LINK_RADIUS``), not to the peak's own cell neighbourhood.
+* **links** — each station against the station one place before it, then two and three places
+  before it. Mutual observations tie a station to the mapper poses around it, but the step from
+  one station to the next passes through a turn in place measured only by odometry (a robot
+  that has just turned cannot see the other's beacon behind it), so the station maps are
+  matched in a small window around the predicted relative pose. In a corridor such a match
+  fixes the heading and the cross-track position but hardly the along-track one, so its
+  factor's covariance is fitted to the probability near the peak (``_LINK_RADIUS``).
+* **loop closures** — each station against the map of the stations at least ``_MIN_AGE``
+  older near it, in the frame of the nearest of them, over ±3σ of the predicted relative pose
+  (σ from the graph's joint marginals); a dominant peak that passes the χ² gate against the
+  prediction becomes a factor.
+
+Each accepted search is a ``Localize`` event: a between-factor from the anchor station. After
+the ``changes`` step, each robot's last sweep is localized against the final map (ceiling band,
+and a floor band for comparison): those results are reported.
 """
 
 from __future__ import annotations
