@@ -36,6 +36,10 @@ result equals the per-pose loop (``score_poses_loop``, the paper's method) up to
 round-off. When the local grid's frame sits on a cell corner or a cell centre and T is a multiple
 of 4, a quarter turn of the rotated cells is an exact lattice permutation, so the spectrum of one
 splatted image serves four rotations, against four rotated copies of the global spectrum.
+
+**Best pose alone.** ``best_pose`` finds the same lattice argmax without scoring every pose: by
+branch and bound over (rotation, translation block), with true upper bounds of each block's
+scores (``search_bnb``), then refines it as ``search`` does.
 """
 
 from __future__ import annotations
@@ -173,6 +177,15 @@ def yaw_lattice(angular_resolution_rad: float) -> np.ndarray:
             f"angular resolution {math.degrees(angular_resolution_rad):g}° must divide 360°"
         )
     return np.arange(count) * (2.0 * math.pi / count)
+
+
+def _quarter_lattice(yaw_rad: np.ndarray) -> bool:
+    """Whether ``yaw_rad`` is a whole-circle lattice (``yaw_lattice``) whose quarter turns are
+    lattice rotations: the quarter-turn shortcut needs both."""
+    count = len(yaw_rad)
+    return count % 4 == 0 and bool(
+        np.allclose(yaw_rad, np.arange(count) * (2.0 * math.pi / count), rtol=0.0, atol=1e-9)
+    )
 
 
 def _check_pair(local: Band, global_: Band) -> float:
@@ -610,7 +623,7 @@ def _correlate_lattice(
     m_hi = m_lo + np.array([len(x_m), len(y_m)]) - 1
     local_frac = _frac(np.asarray(local.lower_xy, dtype=float) / r)
     symmetric = local_frac[0] == local_frac[1] and local_frac[0] in (0.0, 0.5)
-    plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and len(yaw_rad) % 4 == 0)
+    plan = _plan(cells, values, s, m_lo, m_hi, yaw_rad, symmetric and _quarter_lattice(yaw_rad))
     shape = (len(yaw_rad), len(y_m), len(x_m))
     out = np.empty(shape, dtype=np.float32) if keep_scores else None
     argmax = None if keep_scores else np.zeros(shape[0], dtype=np.int64)
@@ -861,7 +874,25 @@ def refine_peak(scores: np.ndarray, index: tuple[int, int, int], yaw_wraps: bool
     return step
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def _bspline(t: float) -> tuple[float, float, float, float, float, float, float, float]:
+    """The cubic B-spline's four weights at fraction t of a cell, and their derivatives."""
+    u = 1.0 - t
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        u * u * u / 6.0,
+        (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0,
+        (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0,
+        t3 / 6.0,
+        -u * u / 2.0,
+        (3.0 * t2 - 4.0 * t) / 2.0,
+        (-3.0 * t2 + 2.0 * t + 1.0) / 2.0,
+        t2 / 2.0,
+    )
+
+
+@njit(cache=True, nogil=True, fastmath=True)
 def _spline_score(
     centres: np.ndarray,
     w: np.ndarray,
@@ -873,59 +904,57 @@ def _spline_score(
 ) -> float:
     """Σ w_k · v_G(T·c_k) with v_G interpolated by a cubic B-spline through the global cell
     centres (``coefficients``: the prefiltered values, padded by ``_PAD`` cells): the score as a
-    smooth function of the pose; its gradient (x, y, yaw) is written into ``gradient``."""
+    smooth function of the pose; its gradient (x, y, yaw) is written into ``gradient``.
+
+    Two passes: where each centre falls (vectorised), then the 4 × 4 coefficients around it."""
     c, s = math.cos(pose[2]), math.sin(pose[2])
     rows, cols = coefficients.shape
+    scale = 1.0 / resolution_m
+    shift_x = (pose[0] - origin[0]) * scale - 0.5 + _PAD
+    shift_y = (pose[1] - origin[1]) * scale - 0.5 + _PAD
+    count = len(w)
+    frac_x = np.empty(count)
+    frac_y = np.empty(count)
+    first = np.empty(count, dtype=np.int64)  # flat index of the 4 × 4 coefficients; -1: none
+    for k in range(count):
+        fx = (c * centres[k, 0] - s * centres[k, 1]) * scale + shift_x
+        fy = (s * centres[k, 0] + c * centres[k, 1]) * scale + shift_y
+        j0 = np.floor(fx)
+        i0 = np.floor(fy)
+        frac_x[k] = fx - j0
+        frac_y[k] = fy - i0
+        inside = (i0 >= 1) & (j0 >= 1) & (i0 + 2 < rows) & (j0 + 2 < cols)  # else the values are 0
+        first[k] = np.int64(i0 - 1) * cols + np.int64(j0 - 1) if inside else -1
+    flat = coefficients.ravel()
     total = 0.0
     gx = 0.0
     gy = 0.0
     gt = 0.0
-    bx = np.empty(4)
-    by = np.empty(4)
-    dx = np.empty(4)
-    dy = np.empty(4)
-    for k in range(len(w)):
-        rx = c * centres[k, 0] - s * centres[k, 1]
-        ry = s * centres[k, 0] + c * centres[k, 1]
-        fx = (rx + pose[0] - origin[0]) / resolution_m - 0.5 + _PAD
-        fy = (ry + pose[1] - origin[1]) / resolution_m - 0.5 + _PAD
-        j0 = math.floor(fx)
-        i0 = math.floor(fy)
-        if i0 < 1 or j0 < 1 or i0 + 2 >= rows or j0 + 2 >= cols:
-            continue  # off the padded grid: the values there are 0
-        for axis in range(2):
-            t = fx - j0 if axis == 0 else fy - i0
-            u = 1.0 - t
-            b = bx if axis == 0 else by
-            d = dx if axis == 0 else dy
-            b[0] = u * u * u / 6.0
-            b[1] = (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0
-            b[2] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) / 6.0
-            b[3] = t * t * t / 6.0
-            d[0] = -u * u / 2.0
-            d[1] = (3.0 * t * t - 4.0 * t) / 2.0
-            d[2] = (-3.0 * t * t + 2.0 * t + 1.0) / 2.0
-            d[3] = t * t / 2.0
+    for k in range(count):
+        i = first[k]
+        if i < 0:
+            continue
+        bx0, bx1, bx2, bx3, dx0, dx1, dx2, dx3 = _bspline(frac_x[k])
+        by0, by1, by2, by3, dy0, dy1, dy2, dy3 = _bspline(frac_y[k])
         value = 0.0
         dfx = 0.0
         dfy = 0.0
-        for a in range(4):
-            row_value = 0.0
-            row_slope = 0.0
-            for e in range(4):
-                coefficient = coefficients[i0 - 1 + a, j0 - 1 + e]
-                row_value += bx[e] * coefficient
-                row_slope += dx[e] * coefficient
-            value += by[a] * row_value
-            dfx += by[a] * row_slope
-            dfy += dy[a] * row_value
+        for weight, slope in ((by0, dy0), (by1, dy1), (by2, dy2), (by3, dy3)):
+            c0, c1, c2, c3 = flat[i], flat[i + 1], flat[i + 2], flat[i + 3]
+            row_value = bx0 * c0 + bx1 * c1 + bx2 * c2 + bx3 * c3
+            value += weight * row_value
+            dfx += weight * (dx0 * c0 + dx1 * c1 + dx2 * c2 + dx3 * c3)
+            dfy += slope * row_value
+            i += cols
+        rx = c * centres[k, 0] - s * centres[k, 1]
+        ry = s * centres[k, 0] + c * centres[k, 1]
         total += w[k] * value
         gx += w[k] * dfx
         gy += w[k] * dfy
         gt += w[k] * (dfx * -ry + dfy * rx)
-    gradient[0] = gx / resolution_m
-    gradient[1] = gy / resolution_m
-    gradient[2] = gt / resolution_m
+    gradient[0] = gx * scale
+    gradient[1] = gy * scale
+    gradient[2] = gt * scale
     return total
 
 
@@ -1150,28 +1179,26 @@ def best_pose(
     window_m: tuple[float, float, float, float] | None = None,
 ) -> tuple[np.ndarray, float, float]:
     """The refined best pose alone (x_m, y_m, yaw_rad), its lattice score and the seconds it
-    took: the same exhaustive correlation as ``search``, keeping only each rotation's maximum
-    (no score lattice, no PDF); the three rotations around the best are scored again for the
-    refinement."""
+    took: the lattice argmax of the exhaustive search (``search_bnb.lattice_best``: branch and
+    bound, exact, without scoring every pose), then ``search``'s refinement — a quadratic over
+    the 3×3×3 scores around it, then ``refine_pose``. EstimationError as ``search``."""
+    from estimation.search_bnb import lattice_best  # it builds on this module's helpers
+
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
-    workers = params.thread_count()
-    _, slices = _correlate_lattice(
-        local, global_, x_m, y_m, yaw_rad, params.metric, workers, keep_scores=False
-    )
-    assert slices.argmax is not None
-    t = int(np.argmax(slices.maxima))
-    y, x = (int(i) for i in np.unravel_index(int(slices.argmax[t]), (len(y_m), len(x_m))))
-    around = yaw_rad[np.arange(t - 1, t + 2) % len(yaw_rad)]
-    near = correlate_all(local, global_, x_m, y_m, around, params.metric, workers=1)
+    best = lattice_best(local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count())
+    t, y, x = best.index
+    # ``near`` is the neighbourhood refine_peak reads in the full search, cut at the lattice's
+    # edges: the best pose sits at its centre unless on an edge.
+    index = (len(best.near) // 2, min(y, 1), min(x, 1))
     steps = np.array(_steps(x_m, y_m, yaw_rad))
     lattice = np.array([x_m[x], y_m[y], yaw_rad[t]])
-    pose = lattice + refine_peak(near, (1, y, x), yaw_wraps=False) * steps
+    pose = lattice + refine_peak(best.near, index, yaw_wraps=False) * steps
     bounds = np.column_stack([lattice - 2 * steps, lattice + 2 * steps])
     pose = refine_pose(local, global_, pose, params.metric, bounds)
     pose[2] = float((pose[2] + math.pi) % (2.0 * math.pi) - math.pi)
-    return pose, float(slices.maxima[t]), time.perf_counter() - started
+    return pose, best.score, time.perf_counter() - started
 
 
 # -- windowed search around an estimate --------------------------------------------------------
