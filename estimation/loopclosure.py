@@ -234,6 +234,11 @@ def station_links(
         if local is None or global_ is None:
             continue
         predicted = se2.between(estimate[anchor_key], estimate[key])
+        x0, x1, y0, y1 = global_.extent()
+        outside = math.hypot(max(x0 - predicted[0], 0.0, predicted[0] - x1),
+                             max(y0 - predicted[1], 0.0, predicted[1] - y1))  # fmt: skip
+        if outside > _LINK_WINDOW_M / 2 + _LINK_CONSISTENT_M:
+            continue  # no pose of the (moved) window could agree with the prediction
         started = time.perf_counter()
         try:
             result, _ = _search_near(
