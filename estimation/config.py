@@ -230,6 +230,11 @@ class BandsConfig(_Section):
 
     ceiling: BandConfig = BandConfig(min_m=2.3, max_m=2.9)
     floor: BandConfig = BandConfig(min_m=0.2, max_m=1.5)
+    free_min_observed: float = Field(
+        0.5, ge=0, le=1,
+        description="a column without an occupied layer is free only when at least this share "
+        "of its layers was observed, else unknown",
+    )  # fmt: skip
 
 
 class SearchConfig(_Section):

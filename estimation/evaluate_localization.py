@@ -49,6 +49,7 @@ from estimation.search import SearchParams, SearchResult, search, windowed_searc
 from mapping.band import Band, extract_band
 from mapping.fusion import Scan, fuse_scans
 from mapping.grid import GridParams
+from sensors.frames import pose2_matrix
 
 __all__ = [
     "DATA_DIR",
@@ -189,8 +190,6 @@ def _view_scan(
 
 
 def _T_robot_scanner(config: Config) -> np.ndarray:
-    from sensors.frames import pose2_matrix
-
     return pose2_matrix(config.robot.scanner_x_m, 0.0, 0.0, z_m=config.robot.scanner_height_m)
 
 
@@ -203,8 +202,6 @@ def _world_map(
 ) -> dict[str, Band]:
     """The bands of 360° views taken every 2.5 m over the world's free floor, fused in the map
     frame: the map a mapping mission would have left."""
-    from sensors.frames import pose2_matrix
-
     params = GridParams(**config.grid.model_dump())
     free = _free_positions(world, params.resolution_m, 0.5)
     lower, upper = world.bounds_xy()
@@ -221,7 +218,9 @@ def _world_map(
     maps = {}
     for name in bands:
         limits = getattr(config.bands, name)
-        maps[name] = extract_band(grid, limits.min_m, limits.max_m)
+        maps[name] = extract_band(
+            grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed
+        )
     return maps
 
 
@@ -234,9 +233,13 @@ def simulated_trials(
     bands: tuple[str, ...] = ("ceiling",),
     perturb: tuple[float, float, float, float] | None = None,
     prior_sigma_m: float | None = None,
+    views: int = 1,
     progress: Progress | None = None,
 ) -> list[Trial]:
-    """Global localization of single-view local maps in a simulated world (see the module).
+    """Global localization of local maps in a simulated world (see the module): one view at
+    the true pose, or with ``views`` > 1 a station's map — that view and ``views`` − 1 more from
+    free positions 2–5 m away in line of sight (a mapper's scans around a still reference,
+    placed in its frame as mutual localization places them).
 
     ``perturb``: (fraction, shift_m, yaw_deg, remove_fraction) of ``perturb_movables``, applied
     after the map is built and before the local views are taken. ``prior_sigma_m``: search a
@@ -260,6 +263,8 @@ def simulated_trials(
     case = world_name
     if prior_sigma_m is not None:
         case += f" (prior ±{prior_sigma_m:g} m)"
+    if views > 1:
+        case += f" (station map, {views} views)"
     if perturb is not None:
         fraction, shift_m, yaw_deg, remove = perturb
         changed, _ = perturb_movables(
@@ -272,11 +277,19 @@ def simulated_trials(
     for k in range(trials):
         x, y = free[rng.integers(len(free))]
         truth = np.array([float(x), float(y), float(rng.uniform(-math.pi, math.pi))])
-        scan = _view_scan(changed, (truth[0], truth[1], math.degrees(truth[2])), config, rng, scene)
-        local_grid = fuse_scans([scan], [T_robot_scanner], params)
+        poses = [truth, *_mapper_poses(truth, views - 1, free, scene, config, rng)]
+        scans = [
+            _view_scan(changed, (p[0], p[1], math.degrees(p[2])), config, rng, scene) for p in poses
+        ]
+        T_truth_map = np.linalg.inv(pose2_matrix(*truth))
+        frames = [T_truth_map @ pose2_matrix(*p) @ T_robot_scanner for p in poses]
+        local_grid = fuse_scans(scans, frames, params)
         for name in bands:
             limits = getattr(config.bands, name)
-            local = extract_band(local_grid, limits.min_m, limits.max_m)
+            local = extract_band(
+                local_grid, limits.min_m, limits.max_m,
+                free_min_observed=config.bands.free_min_observed,
+            )  # fmt: skip
             calibrate = perturb is None and prior_sigma_m is None and name == "ceiling"
             search_with = search_params(config.search)
             prior = None
@@ -286,6 +299,33 @@ def simulated_trials(
             out.append(_trial(case, name, local, maps[name], truth, search_with, calibrate, prior))
         if progress is not None:
             progress(f"{case}: trial {k + 1}/{trials}")
+    return out
+
+
+def _mapper_poses(
+    reference: np.ndarray,
+    count: int,
+    free: np.ndarray,
+    scene: Any,
+    config: Config,
+    rng: np.random.Generator,
+) -> list[np.ndarray]:
+    """``count`` poses at free positions 2–5 m from ``reference`` whose scanners see each
+    other (nothing between them at scanner height), random headings."""
+    if count <= 0:
+        return []
+    distance = np.hypot(*(free - reference[:2]).T)
+    candidates = free[(distance >= 2.0) & (distance <= 5.0)]
+    height = config.robot.scanner_height_m
+    out: list[np.ndarray] = []
+    for k in rng.permutation(len(candidates)):
+        offset = candidates[k] - reference[:2]
+        origin = np.array([reference[0], reference[1], height])
+        hit = scene.cast(origin, np.array([[offset[0], offset[1], 0.0]]), normals=False)
+        if hit.range_m[0] >= float(np.hypot(*offset)):
+            out.append(np.array([*candidates[k], rng.uniform(-math.pi, math.pi)]))
+            if len(out) == count:
+                break
     return out
 
 
@@ -455,8 +495,6 @@ def _carmen_scan(scans: CarmenScans, i: int) -> tuple[Scan, np.ndarray]:
 
 
 def _pose_matrix(pose: np.ndarray) -> np.ndarray:
-    from sensors.frames import pose2_matrix
-
     return pose2_matrix(float(pose[0]), float(pose[1]), float(pose[2]))
 
 
@@ -540,7 +578,9 @@ def write_figures(
     scan = _view_scan(world, (7.0, 1.25, 90.0), config, rng, scene)
     local_grid = fuse_scans([scan], [_T_robot_scanner(config)], grid_params)
     limits = config.bands.ceiling
-    local = extract_band(local_grid, limits.min_m, limits.max_m)
+    local = extract_band(
+        local_grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed
+    )
     result = search(local, global_, params)
     found = Localization(
         result, (), result.is_dominant(params.dominance_ratio), global_, local, result.seconds

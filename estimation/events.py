@@ -56,13 +56,17 @@ class Localize:
     (``reference`` None: matched against a fixed prior map) or in the frame of the earlier
     station ``reference`` (matched against the part of this mission's map it built).
     ``peak_radius`` (m, rad) is the neighbourhood of the peak whose probability the factor's
-    covariance is fitted to; None: the configured ``search.peak_radius_*``."""
+    covariance is fitted to; None: the configured ``search.peak_radius_*``. ``pose`` is the
+    search's refined best pose (``SearchResult.pose``: the score maximised on the interpolated
+    map), the factor's measurement; None: the PDF's own best pose (``PosePdf.best_pose``, a
+    quadratic through the lattice peak)."""
 
     robot: str
     index: int
     pdf: PosePdf
     reference: PoseRef | None = None
     peak_radius: tuple[float, float] | None = None
+    pose: tuple[float, float, float] | None = None
 
 
 Event = Start | Move | Observe | Localize

@@ -421,7 +421,9 @@ class GraphBuilder:
             )
         if reference == key:
             raise EstimationError(f"event {number}: a station cannot be localized against itself")
-        mean = pdf.best_pose()
+        mean = pdf.best_pose() if event.pose is None else np.asarray(event.pose, dtype=float)
+        if mean.shape != (3,) or not np.isfinite(mean).all():
+            raise EstimationError(f"event {number}: Localize.pose must be 3 finite numbers")
         radius_m, radius_rad = event.peak_radius or (s.peak_radius_m, s.peak_radius_rad)
         cov_frame = floor_covariance(
             pdf.covariance(radius_m, radius_rad),
@@ -436,6 +438,8 @@ class GraphBuilder:
         seeded, from_search = seed_pose(
             pdf, fallback_in_ref, s.dominance_ratio, s.peak_radius_m, s.peak_radius_rad
         )
+        if from_search and event.pose is not None:
+            seeded = mean.copy()
         if key not in self.guesses:
             if seeded is None:
                 return self._reject(

@@ -137,7 +137,9 @@ def _band(sweeps: list[Sweep], frame: np.ndarray, estimate: dict[int, np.ndarray
     )
     limits = config.bands.ceiling if which == "ceiling" else config.bands.floor
     try:
-        band = extract_band(grid, limits.min_m, limits.max_m)
+        band = extract_band(
+            grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed
+        )
     except MapError:
         return None
     return band if band.known.sum() > 50 else None
@@ -187,6 +189,11 @@ def _search_near(
     result = result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_))
     _, by, bx = result.best_index
     return result, bx in (0, len(x_m) - 1) or by in (0, len(y_m) - 1)
+
+
+def _pose_of(result: SearchResult) -> tuple[float, float, float]:
+    x, y, yaw = (float(v) for v in result.pose)
+    return x, y, yaw
 
 
 def _own_sweeps(
@@ -252,8 +259,9 @@ def station_links(
             < _LINK_CONSISTENT_RAD
         )
         if consistent:
+            reference = (previous[0], previous[1])
             events.append(
-                Localize(robot, index, result.pdf, (previous[0], previous[1]), _LINK_RADIUS)
+                Localize(robot, index, result.pdf, reference, _LINK_RADIUS, _pose_of(result))
             )
         records.append(
             SearchRecord(
@@ -319,7 +327,9 @@ def loop_closures(
         chi2_value = float(offset @ np.linalg.solve(uncertainty + result.covariance, offset))
         use = dominant and chi2_value < _LOOP_GATE
         if use:
-            events.append(Localize(robot, index, result.pdf, reference=(anchor[0], anchor[1])))
+            events.append(
+                Localize(robot, index, result.pdf, (anchor[0], anchor[1]), pose=_pose_of(result))
+            )
         records.append(
             SearchRecord(
                 station=f"{robot}{index}", against=f"{anchor[0]}{anchor[1]}", band="ceiling",

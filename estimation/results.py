@@ -83,7 +83,10 @@ def write_results(output: BatchOutput, config: Config) -> None:
         occupied = write_grid_ply(work / "map.ply", output.grid)
         band = config.bands.ceiling
         try:
-            ceiling = extract_band(output.grid, band.min_m, band.max_m)
+            ceiling = extract_band(
+                output.grid, band.min_m, band.max_m,
+                free_min_observed=config.bands.free_min_observed,
+            )  # fmt: skip
             write_band_pgm(work / "ceiling.yaml", ceiling)
         except MapError as exc:
             ceiling = None

@@ -88,16 +88,23 @@ def extract_band(
     z_max_m: float,
     *,
     threshold: float | None = None,
+    free_min_observed: float = 0.0,
     lower_xy: np.ndarray | tuple[float, float] | None = None,
     upper_xy: np.ndarray | tuple[float, float] | None = None,
 ) -> Band:
     """Sum the grid's columns over a height band and re-normalise (DESIGN §6).
 
     A band cell's value is the number of occupied cells (P > ``threshold``, default the grid's)
-    among the band's layers in its column, divided by the number of layers. The 2D grid covers
+    among the band's layers in its column, divided by the number of layers. A column is known
+    when it holds an occupied layer, or when at least ``free_min_observed`` (a share) of its
+    layers were observed: a column seen free only through a layer or two — rays passing just under
+    a beam, whose other layers nobody saw — is then unknown rather than free, so that two maps
+    of the same place seen from different viewpoints agree. The 2D grid covers
     the columns overlapping the rectangle [lower_xy, upper_xy], by default the bounding box of
     the band's known cells; MapError if the band has no known cell and no rectangle is given.
     """
+    if not 0.0 <= free_min_observed <= 1.0:
+        raise MapError(f"free_min_observed must lie in [0, 1], got {free_min_observed!r}")
     res = grid.resolution_m
     origin = grid.origin_m
     first, last = band_layers(float(origin[2]), res, z_min_m, z_max_m)
@@ -115,14 +122,15 @@ def extract_band(
             raise MapError(f"empty rectangle: lower {lower_xy}, upper {upper_xy}")
     cols, rows = (hi_ij - lo_ij + 1).tolist()
     counts = np.zeros((rows, cols), dtype=np.int64)
-    known = np.zeros((rows, cols), dtype=bool)
     ij = cells[:, :2] - lo_ij
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < cols) & (ij[:, 1] >= 0) & (ij[:, 1] < rows)
     ij, values = ij[inside], values[inside]
     level = grid.params.logodds_threshold if threshold is None else float(logodds(threshold))
-    known[ij[:, 1], ij[:, 0]] = True
     occupied = values > level
     np.add.at(counts, (ij[occupied, 1], ij[occupied, 0]), 1)
+    observed = np.zeros((rows, cols), dtype=np.int64)
+    np.add.at(observed, (ij[:, 1], ij[:, 0]), 1)
+    known = (counts > 0) | ((observed > 0) & (observed >= free_min_observed * layers))
     return Band(
         occupancy=counts / layers,
         known=known,

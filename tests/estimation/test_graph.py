@@ -151,6 +151,21 @@ def test_a_dominant_search_seeds_a_station_and_a_flat_one_does_not() -> None:
     assert "a9 is new and its search peak is not dominant" in rejected.rejection.reason
 
 
+def test_a_search_result_pose_is_the_factor_measurement_and_seed() -> None:
+    """A ``Localize`` that carries the search's refined pose measures that pose, not the PDF's
+    lattice peak; it also seeds a new station with it. A non-finite pose is an error."""
+    builder, _, _ = two_robots()
+    truth = np.array([4.0, 3.0, 1.0])
+    pdf = search_pdf(truth, 0.05, math.radians(1.0))
+    refined = truth + np.array([0.013, -0.021, math.radians(0.3)])
+    increment = builder.add(Localize("a", 5, pdf, pose=tuple(refined)))
+    np.testing.assert_allclose(increment.factors[0].measurement, refined, atol=1e-12)
+    np.testing.assert_allclose(increment.values[pose_key("a", 5)], refined, atol=1e-12)
+    assert np.abs(pdf.best_pose() - refined).max() > 0.005  # the PDF alone would differ
+    with pytest.raises(EstimationError, match=r"Localize\.pose must be 3 finite numbers"):
+        builder.add(Localize("a", 6, pdf, pose=(1.0, math.nan, 0.0)))
+
+
 def test_loop_closure_relative_to_an_earlier_station() -> None:
     builder, _, _ = two_robots()
     builder.add(Move("a", 1, (2.0, 0.0, 0.1)))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +106,31 @@ def test_a_scanned_room_shows_its_walls_in_the_ceiling_band() -> None:
     assert band.known[3:-3, 3:-3].mean() > 0.9
     assert band.occupancy[:, 0].mean() > 0.5
     assert band.occupancy[:, -1].mean() > 0.5
+
+
+def test_a_column_seen_free_in_few_layers_is_unknown_with_free_min_observed() -> None:
+    """Column (7, 5) was observed only below layer 6; the band 0.25–0.85 m (layers 2–7, six
+    layers) sees four of its layers, all free. Layers 4–9 see two: with free_min_observed 0.5 the
+    column is free in the first band and unknown in the second, as are never-observed columns;
+    occupied columns stay known whatever the share."""
+    grid = synthetic_room()
+    low = extract_band(grid, 0.25, 0.85, free_min_observed=0.5)
+    high = extract_band(grid, 0.45, 1.05, free_min_observed=0.5)
+    default = extract_band(grid, 0.45, 1.05)
+    assert low.known[5, 7]
+    assert low.occupancy[5, 7] == 0.0
+    assert not high.known[5, 7]
+    assert default.known[5, 7]  # the DESIGN's plain sum: free
+    assert default.occupancy[5, 7] == 0.0
+    assert high.known[0, :].all()  # a wall row
+    assert (high.occupancy[0, :] == 1.0).all()
+    assert high.known.sum() == default.known.sum() - 1
+    every = extract_band(grid, 0.45, 1.05, free_min_observed=1.0)
+    assert not every.known[5, 7]
+    assert every.known.sum() == high.known.sum()
+    for bad in (-0.1, 1.5, math.nan):
+        with pytest.raises(MapError, match="free_min_observed must lie in"):
+            extract_band(grid, 0.45, 1.05, free_min_observed=bad)
 
 
 def test_errors_name_the_problem() -> None:
