@@ -254,6 +254,11 @@ class SearchConfig(_Section):
         0.1, gt=0, lt=1, description="band occupancy from which a cell is occupied evidence"
     )
     beta: float = Field(0.04, gt=0, description="PDF ∝ exp(beta · score), calibrated")
+    station_beta: float = Field(
+        0.125, gt=0,
+        description="beta of the searches between station maps inside a mission (links, loop "
+        "closures), calibrated on simulated missions",
+    )  # fmt: skip
 
     @model_validator(mode="after")
     def _windows_ordered(self) -> Self:

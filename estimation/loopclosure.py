@@ -91,11 +91,17 @@ _LINK_RADIUS = (0.5, math.radians(5.0))
 _LINK_YAW_RAD = math.radians(20.0)
 
 
-def search_params(config: Config) -> SearchParams:
-    """The search's own configuration glue, so every ``search`` key (β, occupied level) applies."""
+def search_params(config: Config, *, stations: bool = False) -> SearchParams:
+    """The search's own configuration glue, so every ``search`` key (β, occupied level) applies;
+    with ``stations``, β is ``search.station_beta``: station maps, each fused from a few views
+    with millimetre relative poses, agree with each other more closely than a single view agrees
+    with a whole map, so their PDF is sharper (the calibration is in the README)."""
+    import dataclasses
+
     from estimation.localize import search_params as from_section
 
-    return from_section(config.search)
+    params = from_section(config.search)
+    return dataclasses.replace(params, beta=config.search.station_beta) if stations else params
 
 
 @dataclass(frozen=True)
@@ -220,7 +226,7 @@ def station_links(
     around the predicted relative pose; a best pose consistent with the prediction becomes a
     ``Localize`` event."""
     config = dataset.config
-    params = search_params(config)
+    params = search_params(config, stations=True)
     stations = [s for s in _stations(dataset, sweeps) if pose_key(s[0], s[1]) in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
@@ -286,7 +292,7 @@ def loop_closures(
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
     becomes a ``Localize`` event."""
     config = dataset.config
-    params = search_params(config)
+    params = search_params(config, stations=True)
     stations = [s for s in _stations(dataset, sweeps) if pose_key(s[0], s[1]) in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []

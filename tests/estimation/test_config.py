@@ -102,6 +102,8 @@ def test_integers_are_accepted_for_floats(tmp_path: Path) -> None:
         ("serial: {password: short}\n", r"serial\.password: String should have at least 8 characters \(got 'short'\)"),
         ("serial: {permanent_baud: 1}\n", r"serial\.permanent_baud: Input should be a valid boolean \(got 1\)"),
         ("graph: {robust: tukey}\n", r"graph\.robust: Input should be 'gnc_tls', 'huber', 'cauchy' or 'none' \(got 'tukey'\)"),
+        ("search: {station_beta: 0}\n", r"search\.station_beta: Input should be greater than 0 \(got 0\)"),
+        ("bands: {free_min_observed: 1.5}\n", r"bands\.free_min_observed: Input should be less than or equal to 1 \(got 1\.5\)"),
         ("search: {window_m: 50.0}\n", r"search: window_m \(50\.0\) must not exceed max_window_m \(40\.0\)"),
         ("mirror: {elevation_min_deg: 10, elevation_max_deg: 0}\n", r"mirror: elevation_min_deg \(10\.0\) must be below"),
         ("beacon: {height_m: 0.4}\n", r"beacon \(height_m 0\.4, length_m 0\.6\) must sit above the scanner"),
@@ -153,3 +155,12 @@ def test_config_is_frozen() -> None:
     cfg = Config()
     with pytest.raises(ValueError, match="frozen"):
         cfg.grid.resolution_m = 0.2  # type: ignore[misc]
+
+
+def test_station_searches_use_station_beta(tmp_path: Path) -> None:
+    from estimation.loopclosure import search_params
+
+    config = load_config(write(tmp_path, "search: {beta: 0.05, station_beta: 0.2}\n"))
+    assert search_params(config).beta == pytest.approx(0.05)
+    assert search_params(config, stations=True).beta == pytest.approx(0.2)
+    assert search_params(config, stations=True).free_weight == search_params(config).free_weight

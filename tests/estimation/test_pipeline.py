@@ -125,8 +125,10 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
     assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
     for robot, poses in whole.poses.items():
         for index, pose in poses.items():
-            # 0.5 mm: the station searches run on each run's own (relinearized) estimate
-            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=5e-4)
+            # 1 mm: the station maps are fused at each run's own (relinearized) estimate, so a
+            # few band cells and the refined search poses differ by fractions of a millimetre,
+            # which the search factors (σ of 1–2 cm at station_beta) carry into the poses.
+            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-3)
     assert not (tmp_path / ".cut.checkpoint.npz").exists()
     with pytest.raises(Exception, match="no checkpoint to resume from"):
         run_isam(dataset, tmp_path / "never", resume=True)
