@@ -662,6 +662,8 @@ def run_evaluation(
                 "office_loop", config, rng, trials, prior_sigma_m=1.0, progress=progress
             )
         )
+        rng = np.random.default_rng(seed + 6)
+        add(simulated_trials("office_loop", config, rng, trials, views=3, progress=progress))
         perturb = (1.0, 1.0, 45.0, 0.2)
         add(
             simulated_trials(

@@ -41,6 +41,19 @@ def test_simulated_ceiling_localization_is_accurate() -> None:
         assert max(trial.log_likelihood) < 0.0
 
 
+def test_station_map_trials_fuse_several_views_in_the_reference_frame() -> None:
+    """A station map (the view at the truth and two mapper views 2–5 m away, in line of sight)
+    localizes as accurately as one view: the extra views sit where the truth puts them."""
+    config = load_config()
+    trials = simulated_trials("essex_lab", config, np.random.default_rng(4), 2, views=3)
+    single = simulated_trials("essex_lab", config, np.random.default_rng(4), 2)
+    for trial in trials:
+        assert trial.case == "essex_lab (station map, 3 views)"
+        assert trial.error_m < 0.05, trial
+        assert trial.error_deg < 0.5, trial
+    assert [t.case for t in single] == ["essex_lab", "essex_lab"]
+
+
 @pytest.mark.skipif(not GEB079.exists(), reason="../shared/data/octomap_fr079 is absent")
 def test_geb079_ceiling_and_floor_bands_localize() -> None:
     trials = geb079_trials(GEB079, load_config(), np.random.default_rng(1), 1)
