@@ -655,6 +655,10 @@ def run_isam(
         if stop_after is not None and smoother.events >= stop_after:
             smoother.save_checkpoint(checkpoint)
             return None
+    # Settled (every variable relinearized until nothing moves), the estimate is the graph's
+    # optimum whatever the order of relinearization, so a resumed run builds the same station
+    # maps and ends where an uninterrupted one does.
+    smoother.settle()
     timings["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()
     records: list[SearchRecord] = []
@@ -665,9 +669,10 @@ def run_isam(
             smoother.builder.factors,
         )  # fmt: skip
         records += _as_used(stage_records, config.graph.search_factors)
-        if config.graph.search_factors:
+        if config.graph.search_factors and found:
             for event in found:
                 smoother.add(event)
+            smoother.settle()
             added += len(found)
     estimate = smoother.estimate()
     relocalized = relocalize(dataset, sweeps, estimate)

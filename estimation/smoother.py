@@ -291,6 +291,12 @@ def factor_fingerprint(factors: Sequence[FactorSpec]) -> str:
     return digest.hexdigest()
 
 
+def _pose_change(a: np.ndarray, b: np.ndarray) -> float:
+    """The larger of |Δx|, |Δy| and |Δyaw| (wrapped) between two poses."""
+    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    return float(max(abs(d[0]), abs(d[1]), abs(se2.wrap_angle(d[2]))))
+
+
 class IncrementalSmoother:
     """iSAM2 over the event stream: each event's new factors and values, nothing else.
 
@@ -361,6 +367,38 @@ class IncrementalSmoother:
         if checkpoint is not None:
             self.save_checkpoint(checkpoint)
         return self
+
+    def settle(self, tolerance: float = 1e-6, max_rounds: int = 20) -> int:
+        """Gauss-Newton to convergence in iSAM2: every variable relinearized at each update
+        (a relinearization threshold of 0) until no pose moves by more than ``tolerance``
+        (m, rad) or after ``max_rounds`` updates; then iSAM2 starts again from that optimum with
+        its own settings. The estimate no longer depends on the order in which iSAM2 happened to
+        relinearize, so a resumed run settles where an uninterrupted one does. Returns the
+        updates made."""
+        graph = to_gtsam_graph(self.builder.factors, self.kernel)
+        estimate = self.estimate()
+        if not estimate:
+            return 0
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.0)
+        params.relinearizeSkip = 1
+        full = gtsam.ISAM2(params)
+        try:
+            full.update(graph, to_gtsam_values(estimate))
+            rounds = 1
+            while rounds < max_rounds:
+                after = extract_poses(full.calculateBestEstimate())
+                moved = max(_pose_change(after[k], estimate[k]) for k in after)
+                estimate = after
+                if moved <= tolerance:
+                    break
+                full.update()
+                rounds += 1
+        except RuntimeError as exc:
+            raise EstimationError(f"iSAM2 relinearization failed: {exc}") from exc
+        self.isam = gtsam.ISAM2(self._params)
+        self._update(graph, to_gtsam_values(estimate), "settle")
+        return rounds
 
     def estimate(self) -> dict[int, np.ndarray]:
         """The current estimate (fully back-substituted)."""

@@ -125,10 +125,10 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
     assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
     for robot, poses in whole.poses.items():
         for index, pose in poses.items():
-            # 1 mm: the station maps are fused at each run's own (relinearized) estimate, so a
-            # few band cells and the refined search poses differ by fractions of a millimetre,
-            # which the search factors (σ of 1–2 cm at station_beta) carry into the poses.
-            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-3)
+            # Both runs settle iSAM2 (every variable relinearized) before the searches and
+            # after each stage, so they end at the same optimum (within 1 µm: what is left is
+            # floating-point noise in the solves and the fused station maps).
+            np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-6)
     assert not (tmp_path / ".cut.checkpoint.npz").exists()
     with pytest.raises(Exception, match="no checkpoint to resume from"):
         run_isam(dataset, tmp_path / "never", resume=True)

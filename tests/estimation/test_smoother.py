@@ -57,6 +57,34 @@ def test_batch_and_isam2_reach_the_same_estimate(mission) -> None:  # type: igno
     assert ate(as_array(batch.estimate, keys), mission.truth_array(keys), align=False).rmse_m < 0.1
 
 
+def test_settled_isam2_reaches_the_batch_optimum_whatever_its_relinearization(
+    mission, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    batch = optimize_batch(builder.factors, builder.initial_values(), robust="none")
+    keys = sorted(batch.estimate)
+    # A coarse threshold leaves linearization points up to 0.1 behind: visibly off the optimum.
+    coarse = IncrementalSmoother(relinearize_threshold=0.1, relinearize_skip=3).run(mission.events)
+    before = as_array(coarse.estimate(), keys) - as_array(batch.estimate, keys)
+    assert np.abs(before[:, :2]).max() > 1e-5
+    rounds = coarse.settle()
+    assert 2 <= rounds <= 5  # Gauss-Newton from near the optimum: a few steps
+    settled = as_array(coarse.estimate(), keys)
+    after = settled - as_array(batch.estimate, keys)
+    assert np.abs(after[:, :2]).max() < 1e-6
+    assert np.abs(se2.wrap_angle(after[:, 2])).max() < 1e-6
+    assert coarse.settle() <= 2  # already settled
+    assert IncrementalSmoother().settle() == 0  # nothing to settle
+    # resumed from a checkpoint (a different relinearization history), settled: the same poses
+    half = IncrementalSmoother(relinearize_threshold=0.1, relinearize_skip=3)
+    half.run(mission.events[: len(mission.events) // 2], checkpoint=tmp_path / "half.npz")
+    resumed = IncrementalSmoother.resume(
+        tmp_path / "half.npz", mission.events, relinearize_threshold=0.1, relinearize_skip=3
+    )
+    resumed.settle()
+    assert np.abs(as_array(resumed.estimate(), keys) - settled).max() < 1e-6
+
+
 def test_gnc_on_clean_data_equals_plain_least_squares(mission) -> None:  # type: ignore[no-untyped-def]
     builder = build(mission.events)
     plain = optimize_batch(builder.factors, builder.initial_values(), robust="none")
