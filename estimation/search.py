@@ -71,6 +71,7 @@ __all__ = [
     "correlate_all",
     "match_values",
     "normalise",
+    "overlap_fraction",
     "peak_covariance",
     "pose_lattice",
     "refine_peak",
@@ -167,6 +168,30 @@ def match_values(band: Band, metric: Metric) -> np.ndarray:
     excess = (np.where(known, occupancy, level) - level) / level
     v = np.where(excess < 0.0, metric.free_weight * excess, np.minimum(excess, 1.0))
     return np.asarray(v)
+
+
+def overlap_fraction(local: Band, global_: Band, pose: np.ndarray) -> float:
+    """The share of the local grid's known cells that land on a known cell of the global grid
+    when the local frame sits at ``pose`` (x_m, y_m, yaw_rad) in the global frame (a cell centre
+    belongs to the global cell containing it, as in the score). A score summed over a small
+    overlap rests on little of the local map: few cells of structure in common. EstimationError
+    on a local grid with no known cell, a non-finite pose or mismatched resolutions."""
+    r = _check_pair(local, global_)
+    pose = np.asarray(pose, dtype=np.float64)
+    if pose.shape != (3,) or not np.isfinite(pose).all():
+        raise EstimationError(f"overlap pose must be 3 finite numbers, got {pose!r}")
+    known = np.asarray(local.known, dtype=bool)
+    if not known.any():
+        raise EstimationError("the scan grid has no known cell")
+    gx, gy = local.cell_centers()
+    px, py = gx[known], gy[known]
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    col = np.floor((pose[0] + c * px - s * py - global_.lower_xy[0]) / r + _EDGE).astype(np.int64)
+    row = np.floor((pose[1] + s * px + c * py - global_.lower_xy[1]) / r + _EDGE).astype(np.int64)
+    rows, cols = global_.shape
+    inside = (col >= 0) & (row >= 0) & (col < cols) & (row < rows)
+    hits = np.asarray(global_.known, dtype=bool)[row[inside], col[inside]]
+    return float(hits.sum()) / float(known.sum())
 
 
 def yaw_lattice(angular_resolution_rad: float) -> np.ndarray:

@@ -16,6 +16,7 @@ from estimation.search import (
     correlate_all,
     match_values,
     normalise,
+    overlap_fraction,
     pose_lattice,
     refine_peak,
     score_poses_loop,
@@ -247,6 +248,40 @@ def test_windowed_search_stops_when_the_map_is_covered() -> None:
 
 
 # -- bad inputs --------------------------------------------------------------------------------
+
+
+def test_overlap_fraction_counts_local_known_cells_on_known_map_cells() -> None:
+    known = np.zeros((10, 20), bool)
+    known[:, :10] = True  # the map knows x in [0, 1) only
+    global_ = Band(np.zeros((10, 20)), known, np.zeros(2), 0.1)
+    local = Band(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros(2), 0.1)
+    assert overlap_fraction(local, global_, np.zeros(3)) == 1.0
+    # shifted by 0.8 m: columns at x 0.85 and 0.95 inside, 1.05 and 1.15 on unknown cells
+    assert overlap_fraction(local, global_, np.array([0.8, 0.0, 0.0])) == 0.5
+    # off the grid entirely
+    assert overlap_fraction(local, global_, np.array([5.0, 5.0, 0.0])) == 0.0
+    # a half turn about the origin puts every centre at negative x: off the map
+    assert overlap_fraction(local, global_, np.array([0.0, 0.0, math.pi])) == 0.0
+    # ... and about (0.4, 0.4) it lands on the same 4 × 4 cells
+    assert overlap_fraction(local, global_, np.array([0.4, 0.4, math.pi])) == 1.0
+    # only the local grid's known cells count
+    sparse = Band(np.zeros((4, 4)), np.eye(4, dtype=bool), np.zeros(2), 0.1)
+    assert overlap_fraction(sparse, global_, np.array([0.7, 0.0, 0.0])) == 0.75
+
+
+def test_overlap_fraction_rejects_bad_input() -> None:
+    global_ = Band(np.zeros((10, 10)), np.ones((10, 10), bool), np.zeros(2), 0.1)
+    empty = Band(np.zeros((4, 4)), np.zeros((4, 4), bool), np.zeros(2), 0.1)
+    with pytest.raises(EstimationError, match="no known cell"):
+        overlap_fraction(empty, global_, np.zeros(3))
+    local = Band(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros(2), 0.1)
+    with pytest.raises(EstimationError, match="3 finite numbers"):
+        overlap_fraction(local, global_, np.array([0.0, math.nan, 0.0]))
+    with pytest.raises(EstimationError, match="3 finite numbers"):
+        overlap_fraction(local, global_, np.zeros(2))
+    coarse = Band(np.zeros((4, 4)), np.ones((4, 4), bool), np.zeros(2), 0.2)
+    with pytest.raises(EstimationError, match="differs from the map's"):
+        overlap_fraction(coarse, global_, np.zeros(3))
 
 
 def test_empty_scan_grid_is_rejected() -> None:
