@@ -54,6 +54,7 @@ from sensors.frames import pose2_matrix
 __all__ = [
     "DATA_DIR",
     "Trial",
+    "by_room_kind",
     "calibrate_beta",
     "carmen_trials",
     "format_report",
@@ -85,6 +86,7 @@ class Trial:
     seconds: float
     log_likelihood: tuple[float, ...]  # per β of BETAS: log P(true cell); () if not computed
     dominant: bool = True  # the search's own verdict: trust the answer
+    room: str = ""  # the simulated world's room holding the truth
 
     @property
     def success(self) -> bool:
@@ -126,6 +128,7 @@ def _trial(
     params: SearchParams,
     calibrate: bool = False,
     prior: tuple[np.ndarray, float, float] | None = None,
+    room: str = "",
 ) -> Trial:
     """Search (the whole map, or given ``prior`` = (position, window_m, max_window_m) a window
     around it that grows) and score the answer against the truth."""
@@ -149,6 +152,7 @@ def _trial(
         seconds=seconds,
         log_likelihood=_log_likelihoods(result, truth) if calibrate else (),
         dominant=dominant,
+        room=room,
     )
 
 
@@ -296,7 +300,13 @@ def simulated_trials(
             if prior_sigma_m is not None:
                 guess = truth[:2] + rng.normal(0.0, prior_sigma_m, 2)
                 prior = (guess, config.search.window_m, config.search.max_window_m)
-            out.append(_trial(case, name, local, maps[name], truth, search_with, calibrate, prior))
+            room = changed.room_at(truth[:2])
+            out.append(
+                _trial(
+                    case, name, local, maps[name], truth, search_with, calibrate, prior,
+                    "" if room is None else room.name,
+                )
+            )  # fmt: skip
         if progress is not None:
             progress(f"{case}: trial {k + 1}/{trials}")
     return out
@@ -627,6 +637,17 @@ def summarise(trials: list[Trial]) -> dict[str, Any]:
     }
 
 
+def by_room_kind(trials: list[Trial]) -> list[Trial]:
+    """The trials again, each case split by the kind of room holding the truth (the room name
+    up to its first "_": office_loop's "corridor" and "office")."""
+    import dataclasses
+
+    return [
+        dataclasses.replace(t, case=f"{t.case}: truth in {t.room.split('_')[0] or 'room'}s")
+        for t in trials
+    ]
+
+
 def run_evaluation(
     config: Config,
     *,
@@ -656,6 +677,8 @@ def run_evaluation(
             )
             calibration += found
             add(found)
+            if world == "office_loop":
+                add(by_room_kind(found))
         rng = np.random.default_rng(seed + 5)
         add(
             simulated_trials(
@@ -663,7 +686,9 @@ def run_evaluation(
             )
         )
         rng = np.random.default_rng(seed + 6)
-        add(simulated_trials("office_loop", config, rng, trials, views=3, progress=progress))
+        found = simulated_trials("office_loop", config, rng, trials, views=3, progress=progress)
+        add(found)
+        add(by_room_kind(found))
         perturb = (1.0, 1.0, 45.0, 0.2)
         add(
             simulated_trials(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from estimation.errors import EstimationError
 from estimation.evaluate_localization import (
     BETAS,
     Trial,
+    by_room_kind,
     calibrate_beta,
     carmen_trials,
     format_report,
@@ -37,6 +39,7 @@ def test_simulated_ceiling_localization_is_accurate() -> None:
         assert trial.error_m < 0.05, trial
         assert trial.error_deg < 0.5, trial
         assert trial.peak_ratio > 2.0
+        assert trial.room == "lab"  # the room holding the truth
         assert len(trial.log_likelihood) == len(BETAS)
         assert max(trial.log_likelihood) < 0.0
 
@@ -121,6 +124,19 @@ def test_summary_counts_successes_and_formats_a_table() -> None:
         {"rows": [{"case": "x", "band": "ceiling", **summary}], "skipped": [], "seconds": 1.0}
     )
     assert "| x | ceiling | 3 | 67 % | 33 % | 7.0 cm, 0.30° |" in text
+
+
+def test_trials_split_by_the_kind_of_room_holding_the_truth() -> None:
+    trials = [
+        dataclasses.replace(_trial(0.01, 0.1, ()), case="w", room=room)
+        for room in ("corridor_south", "office_n2", "corridor_east", "")
+    ]
+    split = by_room_kind(trials)
+    assert [t.case for t in split] == [
+        "w: truth in corridors", "w: truth in offices", "w: truth in corridors",
+        "w: truth in rooms",
+    ]  # fmt: skip
+    assert [t.error_m for t in split] == [t.error_m for t in trials]
 
 
 def test_evaluate_localization_rejects_an_unknown_part() -> None:
