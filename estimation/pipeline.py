@@ -27,12 +27,12 @@ import yaml
 from estimation import __version__
 from estimation.config import Config, ConfigError, config_from_mapping
 from estimation.errors import EstimationError
-from estimation.events import Event, Move, Observe, Start
+from estimation.events import Event, Localize, Move, Observe, Start
 from estimation.graph import FactorSpec, GraphBuilder, GraphSettings
 from estimation.keys import key_label, pose_key, split_key
 from estimation.loopclosure import SEARCH_STAGES, SearchRecord, records_json, relocalize
 from estimation.rig import beacon_parameters, mirror_geometry
-from estimation.smoother import optimize_batch
+from estimation.smoother import BatchResult, optimize_batch
 from estimation.validate import validate_and_repair
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
@@ -527,6 +527,69 @@ def _finish(
     return output
 
 
+@dataclasses.dataclass
+class _Searched:
+    """The search stages' outcome: their records, the ``Localize`` events they added (in order),
+    and the batch optimum of the graph after the last stage (its factors, initial values, and
+    the poses connected to the gauge)."""
+
+    records: list[SearchRecord]
+    events: list[Localize]
+    factors: list[FactorSpec]
+    initial: dict[int, np.ndarray]
+    keep: set[int]
+    result: BatchResult
+
+
+def _search_stages(
+    dataset: Dataset,
+    sweeps: list[Sweep],
+    builder: GraphBuilder,
+    gauge: int,
+    timings: dict[str, float],
+    progress: Progress | None,
+) -> _Searched:
+    """Optimize the graph of the mission's events in batch, then run the search stages, each on
+    the batch optimum of the graph so far (adding what it found to ``builder``).
+
+    Both pipelines run this on the same events, so their searches see the same poses bit for
+    bit: station maps are not continuous in the poses (a ray that moves across a cell face
+    changes a cell), so a difference of 1e-7 m in the estimate could move a station link's
+    answer by millimetres and the final poses by a centimetre."""
+    config = dataset.config
+    clock = time.perf_counter()
+    keep = _connected(builder.factors, gauge)
+    factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
+    initial = {k: v for k, v in builder.initial_values().items() if k in keep}
+    if not initial:
+        raise EstimationError(f"{dataset.path}: no pose is connected to the gauge")
+    if progress is not None:
+        progress("optimizing the pose graph")
+    result = optimize_batch(factors, initial, robust=config.graph.robust)
+    timings["optimize"] = timings.get("optimize", 0.0) + time.perf_counter() - clock
+    records: list[SearchRecord] = []
+    events: list[Localize] = []
+    for name, stage in SEARCH_STAGES:
+        if progress is not None:
+            progress(f"global localization: {name}")
+        found, stage_records = stage(
+            dataset, _mapping_sweeps(dataset, sweeps), result.estimate, builder.factors
+        )
+        records += _as_used(stage_records, config.graph.search_factors)
+        if not config.graph.search_factors or not found:
+            continue
+        for event in found:
+            builder.add(event)
+        events += found
+        keep = _connected(builder.factors, gauge)
+        factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
+        initial = {
+            k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
+        }
+        result = optimize_batch(factors, initial, robust=config.graph.robust)
+    return _Searched(records, events, factors, initial, keep, result)
+
+
 def run_batch(
     dataset_dir: Path | str,
     out_dir: Path | str | None = None,
@@ -542,37 +605,15 @@ def run_batch(
     out = Path(out_dir) if out_dir is not None else dataset.path / "result"
     clock = time.perf_counter()
     gauge = pose_key(dataset.robots[0], 0)
-    keep = _connected(builder.factors, gauge)
-    factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
-    initial = {k: v for k, v in builder.initial_values().items() if k in keep}
-    dropped = sorted(set(builder.initial_values()) - keep)
-    if not initial:
-        raise EstimationError(f"{dataset.path}: no pose is connected to the gauge")
-    if progress is not None:
-        progress("optimizing the pose graph")
-    result = optimize_batch(factors, initial, robust=config.graph.robust)
-    timings["optimize"] = time.perf_counter() - clock
-    clock = time.perf_counter()
-    records: list[SearchRecord] = []
-    added = 0
-    for name, stage in SEARCH_STAGES:
-        if progress is not None:
-            progress(f"global localization: {name}")
-        found, stage_records = stage(
-            dataset, _mapping_sweeps(dataset, sweeps), result.estimate, builder.factors
-        )
-        records += _as_used(stage_records, config.graph.search_factors)
-        if not config.graph.search_factors or not found:
-            continue
-        for event in found:
-            builder.add(event)
-        added += len(found)
-        keep = _connected(builder.factors, gauge)
-        factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
-        initial = {
-            k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
-        }
-        result = optimize_batch(factors, initial, robust=config.graph.robust)
+    dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
+    searched = _search_stages(dataset, sweeps, builder, gauge, timings, progress)
+    records, added = searched.records, len(searched.events)
+    factors, initial, keep, result = (
+        searched.factors,
+        searched.initial,
+        searched.keep,
+        searched.result,
+    )
     validation = None
     if added:
         # The validator (DESIGN §5): optimized stations against their search PDFs; a factor
@@ -592,7 +633,7 @@ def run_batch(
             "flagged": [factors[i].describe() for r in rounds for i in r.flagged],
         }
     relocalized = relocalize(dataset, sweeps, result.estimate)
-    timings["search"] = time.perf_counter() - clock
+    timings["search"] = time.perf_counter() - clock - timings["optimize"]
     extra = {
         "graph_error": result.error,
         "global_localization": {
@@ -625,7 +666,7 @@ def run_isam(
     """
     from estimation.smoother import IncrementalSmoother
 
-    dataset, streams, events, sweeps, counts, _, timings = _prepare(
+    dataset, streams, events, sweeps, counts, prepared, timings = _prepare(
         dataset_dir, overrides, progress
     )
     config = dataset.config
@@ -655,25 +696,19 @@ def run_isam(
         if stop_after is not None and smoother.events >= stop_after:
             smoother.save_checkpoint(checkpoint)
             return None
-    # Settled (every variable relinearized until nothing moves), the estimate is the graph's
-    # optimum whatever the order of relinearization, so a resumed run builds the same station
-    # maps and ends where an uninterrupted one does.
-    smoother.settle()
     timings["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    records: list[SearchRecord] = []
-    added = 0
-    for _, stage in SEARCH_STAGES:
-        found, stage_records = stage(
-            dataset, _mapping_sweeps(dataset, sweeps), smoother.estimate(),
-            smoother.builder.factors,
-        )  # fmt: skip
-        records += _as_used(stage_records, config.graph.search_factors)
-        if config.graph.search_factors and found:
-            for event in found:
-                smoother.add(event)
-            smoother.settle()
-            added += len(found)
+    # The searches run as in batch, on the batch optimum of the same events (see
+    # _search_stages): the station maps then see the same poses bit for bit, and what they find
+    # is fed to iSAM2 as events. Settled (every variable relinearized until nothing moves), the
+    # estimate no longer depends on the order in which iSAM2 relinearized, so a resumed run ends
+    # where an uninterrupted one does.
+    gauge = pose_key(dataset.robots[0], 0)
+    searched = _search_stages(dataset, sweeps, prepared, gauge, {}, progress)
+    records, added = searched.records, len(searched.events)
+    for event in searched.events:
+        smoother.add(event)
+    smoother.settle()
     estimate = smoother.estimate()
     relocalized = relocalize(dataset, sweeps, estimate)
     timings["search"] = time.perf_counter() - clock

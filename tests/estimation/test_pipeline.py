@@ -117,7 +117,9 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
     for robot, poses in whole.poses.items():
         for k, (index, pose) in enumerate(sorted(poses.items())):
             del index
-            np.testing.assert_allclose(pose[:2], batch_poses[robot][k, 1:3], atol=0.01)
+            # the same factors (the searches ran on the same batch optimum): iSAM2's solution
+            # and batch's agree to solver tolerance, far inside the issue's 1 cm / 0.1°
+            np.testing.assert_allclose(pose[:2], batch_poses[robot][k, 1:3], atol=1e-4)
     assert run_isam(dataset, tmp_path / "cut", stop_after=6) is None  # killed after 6 events
     assert (tmp_path / ".cut.checkpoint.npz").is_file()
     resumed = run_isam(dataset, tmp_path / "cut", resume=True)
@@ -125,9 +127,9 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
     assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
     for robot, poses in whole.poses.items():
         for index, pose in poses.items():
-            # Both runs settle iSAM2 (every variable relinearized) before the searches and
-            # after each stage, so they end at the same optimum (within 1 µm: what is left is
-            # floating-point noise in the solves and the fused station maps).
+            # Both runs search on the batch optimum of the same events and settle iSAM2 (every
+            # variable relinearized) at the end, so they end at the same optimum (within 1 µm:
+            # floating-point noise in the solves).
             np.testing.assert_allclose(resumed.poses[robot][index], pose, atol=1e-6)
     assert not (tmp_path / ".cut.checkpoint.npz").exists()
     with pytest.raises(Exception, match="no checkpoint to resume from"):
