@@ -607,24 +607,20 @@ def run_batch(
     gauge = pose_key(dataset.robots[0], 0)
     dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
     searched = _search_stages(dataset, sweeps, builder, gauge, timings, progress)
-    records, added = searched.records, len(searched.events)
-    factors, initial, keep, result = (
-        searched.factors,
-        searched.initial,
-        searched.keep,
-        searched.result,
-    )
+    records, added, factors, result = (
+        searched.records, len(searched.events), searched.factors, searched.result
+    )  # fmt: skip
     validation = None
     if added:
         # The validator (DESIGN §5): optimized stations against their search PDFs; a factor
         # that drags stations out of their regions is disabled and the graph solved again.
         searches = {
-            k: [(pdf, ref) for pdf, ref in found if ref is None or ref in keep]
+            k: [(pdf, ref) for pdf, ref in found if ref is None or ref in searched.keep]
             for k, found in builder.pdfs.items()
-            if k in keep
+            if k in searched.keep
         }
         result, rounds, _ = validate_and_repair(
-            factors, {k: result.estimate[k] for k in initial}, searches,
+            factors, {k: result.estimate[k] for k in searched.initial}, searches,
             config.graph.validator_mass, config.graph.robust,
         )  # fmt: skip
         validation = {
