@@ -8,8 +8,8 @@ and how often a dominant answer was right.
 * **Simulated worlds** (``sim``): the global map is the band of 360° views (``demo``'s
   simulated LMS with range noise) taken every 2.5 m over the world and fused in the map frame;
   a local map is the band of one 360° view fused in the robot's own frame, at a random free pose
-  (random yaw). office_loop's offices repeat, so it is also searched from a prior (the truth
-  displaced by 1 m σ per axis; a 4 m window that doubles until the peak is dominant). In
+  (random yaw). office_loop is also searched from a prior (the truth displaced by 1 m σ per
+  axis; a 4 m window that doubles until the peak is dominant) and with station maps. In
   ``cluttered_hall`` the clutter is then moved (``perturb_movables``: every movable object
   shifted up to 1 m and turned up to 45°, a fifth removed) before the local views are taken,
   and both the ceiling band and a floor band are searched.
@@ -159,26 +159,22 @@ def _trial(
 # -- simulated worlds --------------------------------------------------------------------------
 
 
-def _free_positions(world: Any, resolution_m: float, clearance_m: float) -> np.ndarray:
-    """(N, 2) cell centres inside the rooms, clear of walls and of every object's footprint."""
-    from scipy.ndimage import binary_erosion
+def _free_positions(world: Any, config: Config, clearance_m: float) -> np.ndarray:
+    """(N, 2) cell centres (at the grid resolution) where a robot fits: inside the rooms, at
+    least ``clearance_m`` from walls and from every object that reaches below the top of its
+    beacon (luminaires and beams above it do not block it)."""
+    from sensors.sim.planner import free_space
 
-    from sensors.sim.scene import RaycastScene, build_mesh
-
-    lower, upper = world.bounds_xy()
-    scene = RaycastScene(build_mesh(world, ceilings=False))
-    heights, _ = scene.height_map(lower, upper, resolution_m, world.max_ceiling_m + 1.0)
-    rows, cols = heights.shape
-    gx, gy = np.meshgrid(
-        lower[0] + (np.arange(cols) + 0.5) * resolution_m,
-        lower[1] + (np.arange(rows) + 0.5) * resolution_m,
+    resolution_m = config.grid.resolution_m
+    space = free_space(
+        world,
+        robot_radius_m=clearance_m,
+        robot_height_m=config.beacon.height_m + config.beacon.length_m / 2,
+        margin_m=0.0,
+        resolution_m=resolution_m,
     )
-    centres = np.column_stack([gx.ravel(), gy.ravel()])
-    floor = world.inside(centres).reshape(rows, cols) & (np.nan_to_num(heights, nan=9.0) < 0.05)
-    reach = math.ceil(clearance_m / resolution_m)
-    yy, xx = np.mgrid[-reach : reach + 1, -reach : reach + 1]
-    clear = binary_erosion(floor, structure=np.hypot(xx, yy) <= reach, border_value=0)
-    return np.asarray(centres[clear.ravel()])
+    rows, cols = np.nonzero(space.free)
+    return np.asarray(space.lower_xy + (np.column_stack([cols, rows]) + 0.5) * resolution_m)
 
 
 def _view_scan(
@@ -207,7 +203,7 @@ def _world_map(
     """The bands of 360° views taken every 2.5 m over the world's free floor, fused in the map
     frame: the map a mapping mission would have left."""
     params = GridParams(**config.grid.model_dump())
-    free = _free_positions(world, params.resolution_m, 0.5)
+    free = _free_positions(world, config, 0.5)
     lower, upper = world.bounds_xy()
     stations = []
     for x in np.arange(lower[0] + 1.25, upper[0], 2.5):
@@ -257,7 +253,7 @@ def simulated_trials(
     world = load_world(resolve_builtin("worlds", world_name))
     params = GridParams(**config.grid.model_dump())
     segments = config.simulation.cylinder_segments
-    free = _free_positions(world, params.resolution_m, 0.5)
+    free = _free_positions(world, config, 0.5)
     if len(free) == 0:
         raise EstimationError(f"{world_name}: no free position for a robot")
     scene = RaycastScene(build_mesh(world, cylinder_segments=segments))
@@ -276,7 +272,7 @@ def simulated_trials(
         )
         case += " (clutter moved)"
         scene = RaycastScene(build_mesh(changed, cylinder_segments=segments))
-        free = _free_positions(changed, params.resolution_m, 0.5)
+        free = _free_positions(changed, config, 0.5)
     out: list[Trial] = []
     for k in range(trials):
         x, y = free[rng.integers(len(free))]
@@ -557,8 +553,9 @@ def write_figures(
     out_dir: Path, config: Config, data_dir: Path = DATA_DIR, seed: int = 0
 ) -> list[Path]:
     """``search_geb079.png`` (a local ceiling grid placed in geb079, when the data is there) and
-    ``search_office_loop.png`` (a single view in office_loop: its offices repeat, and the PDF
-    shows every place the view fits), drawn by ``localize.render_pdf``."""
+    ``search_office_loop.png`` (a single view in office_loop's south corridor: the PDF also
+    shows the weaker places along the corridors where the view nearly fits), drawn by
+    ``localize.render_pdf``."""
     from estimation.localize import Localization, render_pdf
     from estimation.resources import resolve_builtin
     from sensors.sim.scene import RaycastScene, build_mesh

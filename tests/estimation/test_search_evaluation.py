@@ -16,6 +16,10 @@ from estimation.errors import EstimationError
 from estimation.evaluate_localization import (
     BETAS,
     Trial,
+    _free_positions,
+    _T_robot_scanner,
+    _view_scan,
+    _world_map,
     by_room_kind,
     calibrate_beta,
     carmen_trials,
@@ -25,6 +29,15 @@ from estimation.evaluate_localization import (
     simulated_trials,
     summarise,
 )
+from estimation.localize import search_params
+from estimation.resources import resolve_builtin
+from estimation.se2 import wrap_angle
+from estimation.search import search
+from mapping.band import extract_band
+from mapping.fusion import fuse_scans
+from mapping.grid import GridParams
+from sensors.sim.scene import RaycastScene, build_mesh
+from sensors.sim.world import load_world
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 GEB079 = DATA / "octomap_fr079" / "geb079.bt"
@@ -55,6 +68,50 @@ def test_station_map_trials_fuse_several_views_in_the_reference_frame() -> None:
         assert trial.error_m < 0.05, trial
         assert trial.error_deg < 0.5, trial
     assert [t.case for t in single] == ["essex_lab", "essex_lab"]
+
+
+def test_robots_stand_under_luminaires_but_not_beside_desks() -> None:
+    world = load_world(resolve_builtin("worlds", "office_loop"))
+    free = _free_positions(world, load_config(), 0.5)
+
+    def nearest(xy: tuple[float, float]) -> float:
+        return float(np.hypot(*(free - xy).T).min())
+
+    assert nearest((13.52, 5.77)) < 0.08  # under office_s2_lamp2, which hangs at 2.45-2.6 m
+    assert nearest((4.3, 1.25)) < 0.08  # under the corridor beam beam_s1 (2.4-3.0 m)
+    assert nearest((4.82, 9.0)) > 0.85  # office_s1_desk (0-0.75 m, 0.4 m to its long side)
+    assert nearest((15.0, 10.0)) > 0.5  # the solid block between the office rows
+
+
+def test_a_view_inside_each_office_finds_that_office() -> None:
+    """office_loop's offices share one footprint; their own luminaires and bulkheads in the
+    ceiling band tell them apart, so a single view in each is localized in the whole map.
+    (Without those fixtures, every one of these views landed in another office.)"""
+    config = load_config()
+    rng = np.random.default_rng(7)
+    world = load_world(resolve_builtin("worlds", "office_loop"))
+    scene = RaycastScene(build_mesh(world, cylinder_segments=config.simulation.cylinder_segments))
+    global_ = _world_map(world, config, rng, scene)["ceiling"]
+    params = search_params(config.search)
+    free = _free_positions(world, config, 0.5)
+    offices = [room for room in world.rooms if room.name.startswith("office")]
+    assert len(offices) == 8
+    limits = config.bands.ceiling
+    for room in offices:
+        middle = room.footprint_xy.mean(axis=0)
+        x, y = free[np.argmin(np.hypot(*(free - middle).T))]
+        scan = _view_scan(world, (x, y, -120.0), config, rng, scene)
+        grid = fuse_scans(
+            [scan], [_T_robot_scanner(config)], GridParams(**config.grid.model_dump())
+        )
+        local = extract_band(
+            grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed
+        )
+        result = search(local, global_, params)
+        found_x, found_y, found_yaw = result.pose
+        assert math.hypot(found_x - x, found_y - y) < 0.05, (room.name, result.pose)
+        assert abs(math.degrees(wrap_angle(found_yaw + math.radians(120.0)))) < 0.5, room.name
+        assert result.is_dominant(params.dominance_ratio), room.name
 
 
 @pytest.mark.skipif(not GEB079.exists(), reason="../shared/data/octomap_fr079 is absent")

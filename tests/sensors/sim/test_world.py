@@ -60,6 +60,40 @@ def test_office_loop_is_a_corridor_loop() -> None:
     assert sum(r.name.startswith("office") for r in world.rooms) >= 4
 
 
+def _band_raster(world: World, footprint: np.ndarray, res: float = 0.05) -> np.ndarray:
+    """Cells of an axis-aligned room footprint under a fixed object in the band 2.3-2.9 m."""
+    from sensors.sim.polygon import points_in_polygon
+
+    lower, upper = footprint.min(axis=0), footprint.max(axis=0)
+    xs = np.arange(lower[0] + res / 2, upper[0], res)
+    ys = np.arange(lower[1] + res / 2, upper[1], res)
+    gx, gy = np.meshgrid(xs, ys)
+    centres = np.column_stack([gx.ravel(), gy.ravel()])
+    hit = np.zeros(len(centres), dtype=bool)
+    for box in world.boxes:
+        if not box.movable and box.z_m[0] < 2.9 and box.z_m[1] > 2.3:
+            hit |= points_in_polygon(centres, box.corners_xy())
+    return hit.reshape(gx.shape)
+
+
+def test_office_loop_offices_differ_in_the_ceiling_band() -> None:
+    # The offices share one footprint, so only their fixtures can tell them apart to a
+    # ceiling-band search: less than half of what two offices (or an office and its own half
+    # turn) hold in the band may coincide.
+    world = load_world(WORLDS / "office_loop.yaml")
+    offices = [r for r in world.rooms if r.name.startswith("office")]
+    rasters = {r.name: _band_raster(world, r.footprint_xy) for r in offices}
+    assert len({r.shape for r in rasters.values()}) == 1
+    for name, raster in rasters.items():
+        assert raster.sum() > 200, f"{name} has next to nothing in the band"
+        others = [(f"{o} turned {t}", np.rot90(rasters[o], t)) for o in rasters for t in (0, 2)]
+        for label, other in others:
+            if label == f"{name} turned 0":
+                continue
+            iou = (raster & other).sum() / (raster | other).sum()
+            assert iou < 0.5, f"{name} looks like {label} in the band (IoU {iou:.2f})"
+
+
 def test_cluttered_hall_has_dense_movable_clutter_below_the_band() -> None:
     world = load_world(WORLDS / "cluttered_hall.yaml")
     movable = [s for s in (*world.boxes, *world.cylinders) if s.movable]
