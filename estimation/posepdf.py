@@ -18,7 +18,7 @@ from typing import Self
 import numpy as np
 
 from estimation.errors import EstimationError
-from estimation.se2 import wrap_angle
+from sensors.geometry.se2 import wrap_angle
 
 __all__ = ["PosePdf"]
 

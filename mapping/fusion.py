@@ -14,9 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping import _kernels as kernels
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
+from mapping.kernels.cells import resample_blocks
 
 __all__ = ["Scan", "check_rigid", "fuse_scans", "merge_grids", "transform_grid"]
 
@@ -142,7 +142,7 @@ def transform_grid(
     src, dst = grid._store, out._store
     start = 0
     while True:
-        start = kernels.resample_blocks(
+        start = resample_blocks(
             targets,
             T_b_a,
             np.asarray(params.origin_m, dtype=np.float64),

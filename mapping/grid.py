@@ -18,8 +18,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mapping import _kernels as kernels
 from mapping.errors import MapError
+from mapping.kernels.blocks import (
+    BLOCK_OFFSET,
+    EMPTY_KEY,
+    first_bad_point,
+    layout_table,
+    rebuild_table,
+)
+from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks
+from mapping.kernels.cube import CUBE_ARRAY_BYTES
+from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.logodds import logodds, probability
 
 __all__ = ["GridParams", "OccupancyGrid"]
@@ -110,7 +119,7 @@ class GridParams:
 
 @dataclass
 class _Storage:
-    """The block pool, its hash table and the per-scan bits (see ``mapping._kernels``)."""
+    """The block pool, its hash table and the per-scan bits (see ``mapping.kernels.blocks``)."""
 
     block_size: int
     capacity: int
@@ -137,8 +146,8 @@ class _Storage:
         self.count = np.zeros(1, dtype=np.int64)
         self.updates = np.zeros(1, dtype=np.int64)
         self.table_bits = _table_bits(self.capacity)
-        self.table = np.full((2, 1 << self.table_bits), kernels.EMPTY_KEY, dtype=np.int64)
-        self.lut = kernels.layout_table(self.block_size)
+        self.table = np.full((2, 1 << self.table_bits), EMPTY_KEY, dtype=np.int64)
+        self.lut = layout_table(self.block_size)
 
     @property
     def shift(self) -> int:
@@ -163,14 +172,14 @@ class _Storage:
         self.block_scan = grown(self.block_scan)
         self.capacity = new
         self.table_bits = _table_bits(new)
-        self.table = kernels.rebuild_table(self.coords, n, self.table_bits)
+        self.table = rebuild_table(self.coords, n, self.table_bits)
 
     def nbytes(self) -> int:
         arrays = (self.coords, self.logodds, self.known, self.flags, self.block_scan, self.table)
         return sum(int(a.nbytes) for a in arrays)
 
 
-#: The bitmap that de-duplicates a scan's updates near the sensor (see ``mapping._kernels``):
+#: The bitmap that de-duplicates a scan's updates near the sensor (see ``mapping.kernels.cube``):
 #: 16 MB of address space, of which a scan touches the pages around its rays. All zeros
 #: between scans, so every grid shares it (kernels hold the GIL: one scan at a time).
 _SCAN_CUBE: list[np.ndarray] = []
@@ -178,7 +187,7 @@ _SCAN_CUBE: list[np.ndarray] = []
 
 def _scan_cube() -> np.ndarray:
     if not _SCAN_CUBE:
-        _SCAN_CUBE.append(np.zeros(kernels.CUBE_ARRAY_BYTES, dtype=np.uint8))
+        _SCAN_CUBE.append(np.zeros(CUBE_ARRAY_BYTES, dtype=np.uint8))
     return _SCAN_CUBE[0]
 
 
@@ -200,7 +209,7 @@ class OccupancyGrid:
         self._store = _Storage(self.params.block_size_cells, max(1, int(capacity_blocks)))
         self._scan_id = 0
         # Cells farther than this from the origin cannot be packed into block keys.
-        self._max_cells = (kernels.BLOCK_OFFSET - 2) * self.params.block_size_cells
+        self._max_cells = (BLOCK_OFFSET - 2) * self.params.block_size_cells
 
     # -- properties -------------------------------------------------------------------------
 
@@ -294,9 +303,9 @@ class OccupancyGrid:
         bs = params.block_size_cells
         lg = bs.bit_length() - 1 if bs & (bs - 1) == 0 else -1
         cube = _scan_cube()
-        phase, start = kernels.PHASE_HITS, 0
+        phase, start = PHASE_HITS, 0
         while True:
-            phase, start = kernels.integrate(
+            phase, start = integrate(
                 hits,
                 free_ends,
                 sensor[0],
@@ -324,7 +333,7 @@ class OccupancyGrid:
                 phase,
                 start,
             )
-            if phase == kernels.PHASE_DONE:
+            if phase == PHASE_DONE:
                 return
             try:
                 store.grow()
@@ -364,7 +373,7 @@ class OccupancyGrid:
         params, store = self.params, self._store
         start = 0
         while True:
-            start = kernels.merge_blocks(
+            start = merge_blocks(
                 src.coords[:n],
                 src.logodds[:n],
                 src.known[:n],
@@ -393,7 +402,7 @@ class OccupancyGrid:
         store.logodds[:n] = self._store.logodds[:n]
         store.known[:n] = self._store.known[:n]
         store.count[0] = n
-        store.table = kernels.rebuild_table(store.coords, n, store.table_bits)
+        store.table = rebuild_table(store.coords, n, store.table_bits)
         return out
 
     # -- queries ----------------------------------------------------------------------------
@@ -429,7 +438,7 @@ class OccupancyGrid:
         cells = self._cells(cells)
         store = self._store
         return np.asarray(
-            kernels.lookup_cells(
+            lookup_cells(
                 cells,
                 store.table[0],
                 store.table[1],
@@ -490,7 +499,7 @@ class OccupancyGrid:
             raise MapError(
                 f"block values must be ({len(coords)}, {bs}, {bs}, {bs}), got {values.shape}"
             )
-        limit = kernels.BLOCK_OFFSET - 2
+        limit = BLOCK_OFFSET - 2
         if len(coords) and np.abs(coords).max() >= limit:
             raise MapError(f"block coordinate {int(np.abs(coords).max())} beyond ±{limit}")
         if len(np.unique(coords, axis=0)) != len(coords):
@@ -512,7 +521,7 @@ class OccupancyGrid:
         bits[:, order] = known
         store.known[:n] = np.packbits(bits, axis=1, bitorder="little")
         store.count[0] = n
-        store.table = kernels.rebuild_table(store.coords, n, store.table_bits)
+        store.table = rebuild_table(store.coords, n, store.table_bits)
         return grid
 
     @classmethod
@@ -556,7 +565,7 @@ class OccupancyGrid:
         params, store = self.params, self._store
         start = 0
         while True:
-            start = kernels.add_cells(
+            start = add_cells(
                 cells,
                 values,
                 store.table[0],
@@ -589,7 +598,7 @@ class OccupancyGrid:
         if points.ndim != 2 or points.shape[1] != 3:
             raise MapError(f"{name} must be (N, 3), got {points.shape}")
         reach_m = self._max_cells * self.resolution_m
-        bad = kernels.first_bad_point(points, self.origin_m, reach_m)
+        bad = first_bad_point(points, self.origin_m, reach_m)
         if bad >= 0:
             if not np.all(np.isfinite(points[bad])):
                 raise MapError(f"{name}[{bad}] is not finite: {points[bad].tolist()}")

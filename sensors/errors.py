@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "SensorError", "WorldError"]
+__all__ = ["DeviceError", "SensorError", "TrajectoryError", "WorldError"]
 
 
 class SensorError(Exception):
@@ -15,3 +15,8 @@ class WorldError(SensorError, ValueError):
 
 class DeviceError(SensorError):
     """A device (the LMS 200 on its serial port) failed; the message says what was happening."""
+
+
+class TrajectoryError(SensorError, ValueError):
+    """A trajectory or pose-graph file (TUM, g2o, CARMEN log) is malformed; the message names the
+    file, the line and what is wrong."""

@@ -1,6 +1,6 @@
 """Loading YAML documents into validated pydantic models, with one-line error messages.
 
-World files (``sensors.sim.world``) and configuration files (``estimation.config``) are both
+World files (``sensors.sim.world``) and configuration files (``estimation.app.config``) are both
 YAML mappings validated by a pydantic schema. Errors name the file, the key path inside the
 document and the offending value, e.g. ``grid.resolution_m: must be > 0 (got -0.1)``.
 """
@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["format_validation_error", "read_yaml_mapping", "validate_mapping"]
+__all__ = ["format_validation_error", "merge_mappings", "read_yaml_mapping", "validate_mapping"]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -54,6 +54,18 @@ def format_validation_error(exc: ValidationError, *, prefix: str = "") -> str:
             text += f" (got {_short_value(err['input'])})"
         items.append(text)
     return prefix + "; ".join(items)
+
+
+def merge_mappings(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``top`` merged over ``base``: nested mappings merge key by key, anything else in ``top``
+    replaces what ``base`` has. Neither argument is changed."""
+    merged = dict(base)
+    for key, value in top.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = merge_mappings(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
 
 
 def read_yaml_mapping(path: Path, error: type[Exception]) -> dict[str, Any]:

@@ -3,6 +3,9 @@
 * Imports point one way: estimation → mapping → sensors.
 * Heavy dependencies stay at named edges: gtsam only in estimation; pyserial only in the LMS 200
   driver; open3d and matplotlib only inside functions, so ``coopmap --help`` stays fast.
+* No import cycle between modules (every import counts: module level, inside functions, under
+  ``TYPE_CHECKING``); the core of ``estimation`` never imports its application layer.
+* No module over ``MAX_LINES`` lines; ``tests/`` mirrors the packages.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ PACKAGES = ("estimation", "sensors", "mapping")
 ALLOWED = {"estimation": {"mapping", "sensors"}, "mapping": {"sensors"}, "sensors": set()}
 #: The modules allowed to import pyserial (the driver owns the serial port).
 SERIAL_MODULES = {"sensors/lms200/driver.py"}
+#: A module longer than this is split by concern.
+MAX_LINES = 600
 
 
 def sources() -> list[Path]:
@@ -98,7 +103,7 @@ def test_help_does_not_load_heavy_modules() -> None:
     code = (
         "import sys\n"
         "from typer.testing import CliRunner\n"
-        "from estimation.cli import app\n"
+        "from estimation.app.cli.main import app\n"
         "result = CliRunner().invoke(app, ['--help'])\n"
         "assert result.exit_code == 0, result.output\n"
         "print(sorted(m for m in ('open3d', 'gtsam', 'matplotlib', 'numba', 'serial') "
@@ -108,3 +113,120 @@ def test_help_does_not_load_heavy_modules() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True
     )
     assert out.stdout.strip() == "[]"
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph(paths: list[Path]) -> dict[str, set[str]]:
+    """Module → the project modules it imports (any import, anywhere in the file)."""
+    modules = {module_name(p): p for p in paths}
+
+    def resolve(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for name, path in modules.items():
+        package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), filename=str(path))):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                targets = [base] + [f"{base}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            for target in targets:
+                found = resolve(target)
+                # A package's __init__ is imported by its own modules' imports; not an edge back.
+                if found and found != name and not name.startswith(found + "."):
+                    graph[name].add(found)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan, iterative)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+    for root in sorted(graph):
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph[child]))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                if len(component) > 1:
+                    found.append(sorted(component))
+    return found
+
+
+def test_no_import_cycles() -> None:
+    assert cycles(import_graph(sources())) == []
+
+
+def test_the_cycle_checker_finds_cycles(tmp_path: Path) -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_the_import_graph_sees_imports_inside_functions_and_type_checking() -> None:
+    graph = import_graph(sources())
+    # results.py names the dataset's Sweep under TYPE_CHECKING only; the graph still sees it.
+    assert "estimation.app.dataset" in graph["estimation.app.results"]
+    assert "estimation.app.pipeline" in graph["estimation.app.cli.mission"]  # inside a command
+
+
+def test_the_core_does_not_import_the_application() -> None:
+    graph = import_graph(sources())
+    core = [m for m in graph if m.startswith("estimation.") and not m.startswith("estimation.app")]
+    assert [(m, d) for m in core for d in graph[m] if d.startswith("estimation.app")] == []
+
+
+def test_no_module_is_too_long() -> None:
+    long = {relative(p): n for p in sources() if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert long == {}
+
+
+def test_tests_mirror_the_packages() -> None:
+    """Every test module sits in the folder of the package it tests (tests/<package path>/)."""
+    folders = {p.parent.relative_to(REPO).as_posix() for p in sources()}
+    tests = [p for p in (REPO / "tests").rglob("test_*.py") if p.parent != REPO / "tests"]
+    misplaced = [
+        p.relative_to(REPO).as_posix()
+        for p in tests
+        if p.parent.relative_to(REPO / "tests").as_posix() not in folders
+    ]
+    assert misplaced == []

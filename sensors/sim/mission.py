@@ -30,6 +30,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from sensors.atomic import write_text_atomic
 from sensors.errors import SensorError
+from sensors.geometry import se2
+from sensors.geometry.frames import scanner_pose_matrix
 from sensors.lms200.capture import CaptureWriter
 from sensors.sim.planner import FreeSpace
 from sensors.sim.scene import RaycastScene
@@ -37,10 +39,10 @@ from sensors.sim.sensing import (
     RobotBody,
     SimulatedScanner,
     robot_cylinders,
-    robot_pose_matrix,
     scan_stream,
     telegram_times,
 )
+from sensors.trajio import write_tum
 from sensors.yamlio import read_yaml_mapping, validate_mapping
 
 __all__ = [
@@ -56,7 +58,6 @@ __all__ = [
     "mission_to_yaml",
     "odometry",
     "write_dataset",
-    "write_tum",
 ]
 
 Pose3 = Annotated[list[float], Field(min_length=3, max_length=3)]  # x_m, y_m, yaw_deg
@@ -311,17 +312,6 @@ def build_timeline(
 # Odometry
 
 
-def _compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], a[2] + b[2]])
-
-
-def _between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(b[2] - a[2])])
-
-
 @dataclass(frozen=True)
 class OdometryNoise:
     """Error of one leg: σ = base + per unit (translation per metre, rotation per radian)."""
@@ -348,14 +338,14 @@ def odometry(
     odo_stop = [stops[0].astype(float)]
     errors = []
     for k in range(len(legs)):
-        delta = _between(stops[k], stops[k + 1])
+        delta = se2.between(stops[k], stops[k + 1])
         travelled = math.hypot(delta[0], delta[1])
         turned = abs(delta[2]) + (abs(math.atan2(delta[1], delta[0])) if travelled > 1e-6 else 0.0)
         st = noise.sigma_m + noise.sigma_per_m * travelled
         sr = noise.sigma_rad + noise.sigma_rad_per_rad * turned
         error = np.array([rng.normal(0, st), rng.normal(0, st), rng.normal(0, sr)])
         errors.append(error)
-        odo_stop.append(_compose(odo_stop[-1], delta + error))
+        odo_stop.append(se2.compose(odo_stop[-1], delta + error))
     for i, t in enumerate(times):
         leg = next((k for k, (t0, t1, _) in enumerate(legs) if t0 <= t < t1), None)
         if leg is None:
@@ -364,20 +354,10 @@ def odometry(
             continue
         t0, t1, _ = legs[leg]
         fraction = (t - t0) / (t1 - t0)
-        delta = _between(stops[leg], true[i])
-        out[i] = _compose(odo_stop[leg], delta + fraction * errors[leg])
+        delta = se2.between(stops[leg], true[i])
+        out[i] = se2.compose(odo_stop[leg], delta + fraction * errors[leg])
     out[:, 2] = np.angle(np.exp(1j * out[:, 2]))
     return out
-
-
-def write_tum(path: Path, times: np.ndarray, poses: np.ndarray, z_m: float = 0.0) -> None:
-    """TUM trajectory: ``t x y z qx qy qz qw`` per line (planar: rotation about z)."""
-    lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for t, (x, y, yaw) in zip(times, poses, strict=True):
-        lines.append(
-            f"{t:.6f} {x:.6f} {y:.6f} {z_m:.6f} 0 0 {math.sin(yaw / 2):.9f} {math.cos(yaw / 2):.9f}"
-        )
-    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 # --------------------------------------------------------------------------------------------
@@ -409,9 +389,9 @@ def write_dataset(
     odo_times = np.arange(0.0, timeline.end_s + 1e-9, 1.0 / odometry_rate_hz)
     for name in robots:
         truth = timeline.poses_at(name, odo_times)
-        write_tum(out_dir / "ground_truth" / f"{name}.tum", odo_times, truth)
+        write_tum(out_dir / "ground_truth" / f"{name}.tum", odo_times, truth, decimals=6)
         noisy = odometry(timeline, name, odo_times, odometry_noise, rng)
-        write_tum(out_dir / "robots" / name / "odometry.tum", odo_times, noisy)
+        write_tum(out_dir / "robots" / name / "odometry.tum", odo_times, noisy, decimals=6)
     lines = [json.dumps(event, separators=(",", ":")) for event in timeline.events]
     write_text_atomic(out_dir / "events.jsonl", "\n".join(lines) + "\n")
 
@@ -428,7 +408,7 @@ def write_dataset(
                 chunk = times[start : start + chunk_scans]
                 pose = timeline.poses_at(name, chunk)
                 T = np.stack([
-                    robot_pose_matrix(x, y, yaw, body.scanner_x_m, scanner_height_m)
+                    scanner_pose_matrix(x, y, yaw, body.scanner_x_m, scanner_height_m)
                     for x, y, yaw in pose
                 ])  # fmt: skip
                 others = [o for o in robots if o != name]

@@ -19,9 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sensors.errors import SensorError
-from sensors.frames import pose2_matrix
 from sensors.lms200 import protocol as p
-from sensors.mirror import MirrorGeometry
+from sensors.scan3d.mirror import MirrorGeometry
 from sensors.sim.scene import RaycastScene
 from sensors.sim.world import World, world_from_mapping
 
@@ -30,7 +29,6 @@ __all__ = [
     "SimulatedScanner",
     "SimulatedScans",
     "robot_cylinders",
-    "robot_pose_matrix",
     "scan_stream",
     "telegram_times",
     "world_with_robots",
@@ -326,9 +324,3 @@ def scan_stream(
         arrival = t + p.TURN_S + len(telegram) * 10.0 / baud_rate + latency_s + clock_offset_s
         chunks.append((arrival, telegram))
     return chunks
-
-
-def robot_pose_matrix(x_m: float, y_m: float, yaw_rad: float, scanner_x_m: float,
-                      scanner_height_m: float) -> np.ndarray:  # fmt: skip
-    """T_map_scanner of a robot at (x, y, yaw) with its scanner mounted ahead and up."""
-    return pose2_matrix(x_m, y_m, yaw_rad) @ pose2_matrix(scanner_x_m, 0.0, 0.0, scanner_height_m)

@@ -10,7 +10,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from estimation.bench_fusion import (
+from estimation.app.bench.fusion import (
     FusionCase,
     grid_params,
     map_agreement,
@@ -20,8 +20,9 @@ from estimation.bench_fusion import (
     run_fusion_benchmark,
     simulated_scan,
 )
-from estimation.cli import app, cli_errors
-from estimation.config import Config
+from estimation.app.cli.common import cli_errors
+from estimation.app.cli.main import app
+from estimation.app.config import Config
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
 

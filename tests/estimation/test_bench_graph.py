@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.bench_graph import DATA_DIR, leapfrog_5000, run_g2o_case
-from estimation.cli import app
-from estimation.smoother import IncrementalSmoother
+from estimation.app.bench.graph import leapfrog_5000, run_g2o_case
+from estimation.app.cli.main import app
+from estimation.app.resources import DATA_DIR
+from estimation.posegraph.smoother import IncrementalSmoother
 
 INTEL = DATA_DIR / "pose_graphs_g2o" / "intel.g2o"
 

@@ -12,8 +12,8 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from estimation.cli import app
-from estimation.config import Config
+from estimation.app.cli.main import app
+from estimation.app.config import Config
 
 BUILTIN = ["essex_lab", "office_loop", "cluttered_hall"]
 COOPMAP = Path(sys.executable).parent / "coopmap"

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from estimation.config import (
+from estimation.app.config import (
     BandConfig,
     Config,
     ConfigError,
@@ -158,9 +158,10 @@ def test_config_is_frozen() -> None:
 
 
 def test_station_searches_use_station_beta(tmp_path: Path) -> None:
-    from estimation.loopclosure import search_params
+    from estimation.app.rig import station_params
 
     config = load_config(write(tmp_path, "search: {beta: 0.05, station_beta: 0.2}\n"))
-    assert search_params(config).beta == pytest.approx(0.05)
-    assert search_params(config, stations=True).beta == pytest.approx(0.2)
-    assert search_params(config, stations=True).free_weight == search_params(config).free_weight
+    params = station_params(config)
+    assert params.search.beta == pytest.approx(0.05)
+    assert params.station_search.beta == pytest.approx(0.2)
+    assert params.station_search.free_weight == params.search.free_weight

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimation.config import Config, config_from_mapping
-from estimation.demo import DEFAULT_POSE, run_demo, simulate_view
-from estimation.resources import resolve_builtin
-from mapping.ply import read_ply
+from estimation.app.config import Config, config_from_mapping
+from estimation.app.resources import resolve_builtin
+from estimation.app.sim.demo import DEFAULT_POSE, run_demo, simulate_view
+from mapping.formats.ply import read_ply
 from sensors.errors import WorldError
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import load_world

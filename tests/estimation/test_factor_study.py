@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from estimation.factor_study import accuracy_study, speed_study
+from estimation.app.bench.factor_study import accuracy_study, speed_study
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,9 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation import se2
 from estimation.errors import EstimationError
-from estimation.events import Localize, Move, Observe, Start
-from estimation.graph import (
+from estimation.posegraph.events import Localize, Move, Observe, Start
+from estimation.posegraph.graph import (
     FactorSpec,
     GraphBuilder,
     GraphSettings,
@@ -22,9 +21,10 @@ from estimation.graph import (
     to_gtsam_factor,
     to_gtsam_values,
 )
-from estimation.keys import key_label, pose_key, split_key
-from estimation.mutual import localize_mutual
-from estimation.synthetic import leapfrog, mutual_measurements, search_pdf, visible
+from estimation.posegraph.keys import key_label, pose_key, split_key
+from estimation.posegraph.mutual import localize_mutual
+from estimation.posegraph.synthetic import leapfrog, mutual_measurements, search_pdf, visible
+from sensors.geometry import se2
 
 S = GraphSettings()
 

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.bench_scan import run_scan_benchmark
-from estimation.cli import app
-from estimation.config import Config
-from estimation.resources import resolve_builtin
-from estimation.rig import (
+from estimation.app.bench.scan import run_scan_benchmark
+from estimation.app.cli.main import app
+from estimation.app.config import Config
+from estimation.app.resources import resolve_builtin
+from estimation.app.rig import (
     beacon_parameters,
     driver_from_config,
     mirror_geometry,

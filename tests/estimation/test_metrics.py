@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimation import se2
+from estimation.app.evaluation.metrics import align_se2, associate, ate, relations_error, rpe
 from estimation.errors import EstimationError
-from estimation.metrics import align_se2, associate, ate, relations_error, rpe
-from estimation.trajio import read_carmen_odometry, read_relations
+from sensors.geometry import se2
+from sensors.trajio import read_carmen_odometry, read_relations
 
 DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 INTEL_LOG = DATA / "carmen_corrected" / "intel-corrected.log.gz"

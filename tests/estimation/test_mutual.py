@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimation import se2
 from estimation.errors import EstimationError
-from estimation.mutual import (
+from estimation.posegraph.mutual import (
     _refine_one,
     check_observation,
     closed_form,
@@ -24,6 +23,7 @@ from estimation.mutual import (
     relative_pose,
     separations,
 )
+from sensors.geometry import se2
 
 D = 0.25
 SIGMA_R = 0.02

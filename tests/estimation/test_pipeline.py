@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.cli import app
-from estimation.config import ConfigError
-from estimation.evaluate import evaluate
-from estimation.pipeline import load_dataset, run_batch
-from estimation.simulate import run_simulation
-from estimation.trajio import read_g2o, read_tum
-from mapping.npz import load_map
+from estimation.app.cli.main import app
+from estimation.app.config import ConfigError
+from estimation.app.dataset import load_dataset
+from estimation.app.evaluation.evaluate import evaluate
+from estimation.app.pipeline import run_batch
+from estimation.app.sim.simulate import run_simulation
+from mapping.formats.npz import load_map
 from sensors.errors import SensorError
+from sensors.trajio import read_g2o, read_tum
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -109,7 +110,7 @@ def test_failed_batch_keeps_the_earlier_result(dataset: Path, result: Path, tmp_
 def test_isam_matches_batch_and_resumes_after_a_kill(
     dataset: Path, result: Path, tmp_path: Path
 ) -> None:
-    from estimation.pipeline import run_isam
+    from estimation.app.pipeline import run_isam
 
     whole = run_isam(dataset, tmp_path / "isam")
     assert whole is not None
@@ -150,7 +151,7 @@ def test_metrics_hold_the_gate_table_and_the_searches(dataset: Path, result: Pat
 
 
 def test_gate_table_counts_true_and_false_decisions() -> None:
-    from estimation.evaluate import _gate_table
+    from estimation.app.evaluation.evaluate import _gate_table
 
     rows = [(0.01, 0.001, True), (0.5, 0.001, True), (0.01, 0.001, False), (2.0, 0.5, False),
             (float("nan"), float("nan"), False)]  # fmt: skip

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from estimation.errors import EstimationError
+from estimation.posegraph.seed import seed_pose
 from estimation.posepdf import PosePdf
-from estimation.seed import seed_pose
 
 X = np.arange(-1.0, 1.0001, 0.05)
 Y = np.arange(-0.8, 0.8001, 0.05)

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from estimation import resources
-from estimation.config import ConfigError
+from estimation.app import resources
+from estimation.app.config import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 

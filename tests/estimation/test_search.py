@@ -9,7 +9,7 @@ import pytest
 
 from estimation.errors import EstimationError
 from estimation.posepdf import PosePdf
-from estimation.search import (
+from estimation.search.exhaustive import (
     Metric,
     SearchParams,
     best_pose,
@@ -24,7 +24,7 @@ from estimation.search import (
     windowed_search,
     yaw_lattice,
 )
-from estimation.search_scenes import (
+from estimation.search.scenes import (
     corridor,
     distinctive_room,
     local_view,

@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from estimation import search_bnb
 from estimation.errors import EstimationError
-from estimation.search import (
+from estimation.search import bnb as search_bnb
+from estimation.search.bnb import LatticeBest, lattice_best, lattice_scores, pose_bounds
+from estimation.search.exhaustive import (
     Metric,
     SearchParams,
     best_pose,
@@ -20,8 +21,7 @@ from estimation.search import (
     search,
     yaw_lattice,
 )
-from estimation.search_bnb import LatticeBest, lattice_best, lattice_scores, pose_bounds
-from estimation.search_scenes import Scene, corridor, local_view, random_building, rasterise
+from estimation.search.scenes import Scene, corridor, local_view, random_building, rasterise
 from mapping.band import Band
 
 PARAMS = SearchParams(angular_resolution_rad=math.radians(2.0))

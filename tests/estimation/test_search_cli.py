@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.cli import app
-from estimation.search_scenes import local_view, random_building, rasterise
-from mapping.pgm import write_band_pgm
+from estimation.app.cli.main import app
+from estimation.search.scenes import local_view, random_building, rasterise
+from mapping.formats.pgm import write_band_pgm
 
 TRUTH = (6.23, 9.71, -57.3)  # x_m, y_m, yaw_deg of the scan grid's frame in the map frame
 

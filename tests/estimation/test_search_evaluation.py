@@ -10,14 +10,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.cli import app
-from estimation.config import load_config
-from estimation.errors import EstimationError
-from estimation.evaluate_localization import (
+from estimation.app.cli.main import app
+from estimation.app.config import load_config
+from estimation.app.evaluation.localization import (
     BETAS,
     Trial,
     _free_positions,
-    _T_robot_scanner,
     _view_scan,
     _world_map,
     by_room_kind,
@@ -29,13 +27,14 @@ from estimation.evaluate_localization import (
     simulated_trials,
     summarise,
 )
-from estimation.localize import search_params
-from estimation.resources import resolve_builtin
-from estimation.se2 import wrap_angle
-from estimation.search import search
+from estimation.app.resources import resolve_builtin
+from estimation.app.rig import T_robot_scanner, search_params
+from estimation.errors import EstimationError
+from estimation.search.exhaustive import search
 from mapping.band import extract_band
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams
+from sensors.geometry.se2 import wrap_angle
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import load_world
 
@@ -102,7 +101,7 @@ def test_a_view_inside_each_office_finds_that_office() -> None:
         x, y = free[np.argmin(np.hypot(*(free - middle).T))]
         scan = _view_scan(world, (x, y, -120.0), config, rng, scene)
         grid = fuse_scans(
-            [scan], [_T_robot_scanner(config)], GridParams(**config.grid.model_dump())
+            [scan], [T_robot_scanner(config)], GridParams(**config.grid.model_dump())
         )
         local = extract_band(
             grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed

@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.cli import app
-from estimation.config import Config
-from estimation.planning import _Geometry
-from estimation.simulate import replace_directory, robot_free_space, run_simulation
+from estimation.app.cli.main import app
+from estimation.app.config import Config
+from estimation.app.sim.planning import _Geometry
+from estimation.app.sim.simulate import robot_free_space, run_simulation
+from sensors.atomic import replace_directory
 from sensors.errors import SensorError
 from sensors.lms200.capture import CaptureReader, decode_stream
 from sensors.sim.mission import (
@@ -234,7 +235,7 @@ def test_simulate_cli_errors(tmp_path: Path) -> None:
 
 
 def test_auto_plan_reports_a_cramped_start() -> None:
-    from estimation.planning import plan_leapfrog
+    from estimation.app.sim.planning import plan_leapfrog
 
     spec = mission_from_mapping(
         mission(

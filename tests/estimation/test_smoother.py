@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from estimation import se2
+from estimation.app.evaluation.metrics import ate
 from estimation.errors import EstimationError
-from estimation.events import Localize, Move, Start
-from estimation.graph import GraphBuilder, GraphSettings
-from estimation.keys import pose_key
-from estimation.metrics import ate
-from estimation.smoother import IncrementalSmoother, factor_fingerprint, optimize_batch
-from estimation.synthetic import leapfrog, search_pdf
+from estimation.posegraph.events import Localize, Move, Start
+from estimation.posegraph.graph import GraphBuilder, GraphSettings
+from estimation.posegraph.keys import pose_key
+from estimation.posegraph.smoother import IncrementalSmoother, factor_fingerprint, optimize_batch
+from estimation.posegraph.synthetic import leapfrog, search_pdf
+from sensors.geometry import se2
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -172,8 +172,8 @@ def test_checkpoint_round_trip_in_process(tmp_path: Path, mission) -> None:  # t
 
 KILLED_RUN = """
 import os, signal, sys
-from estimation.synthetic import leapfrog, search_pdf
-from estimation.smoother import IncrementalSmoother
+from estimation.posegraph.synthetic import leapfrog, search_pdf
+from estimation.posegraph.smoother import IncrementalSmoother
 
 events = leapfrog(40, 9, seed=11).events
 kill_at = int(sys.argv[2])
@@ -275,8 +275,8 @@ def test_huber_and_cauchy_kernels_soften_a_wrong_loop_closure(mission) -> None: 
 
 
 def test_relative_covariance_equals_the_composed_odometry() -> None:
-    from estimation.graph import FactorSpec
-    from estimation.smoother import relative_covariances
+    from estimation.posegraph.graph import FactorSpec
+    from estimation.posegraph.smoother import relative_covariances
 
     step_a, step_b = np.array([1.0, 0.5, 0.4]), np.array([1.0, -0.2, 0.3])
     q = np.diag([0.01, 0.02, 0.003])

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from estimation.errors import EstimationError
-from estimation.trajio import (
+from sensors.trajio import (
     G2oGraph,
     read_carmen_odometry,
     read_g2o,

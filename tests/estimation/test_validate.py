@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from estimation import se2
 from estimation.errors import EstimationError
-from estimation.events import Localize
-from estimation.graph import GraphBuilder
-from estimation.keys import pose_key
-from estimation.smoother import optimize_batch
-from estimation.synthetic import leapfrog, search_pdf
-from estimation.validate import validate_and_repair, validate_stations
+from estimation.posegraph.events import Localize
+from estimation.posegraph.graph import GraphBuilder
+from estimation.posegraph.keys import pose_key
+from estimation.posegraph.smoother import optimize_batch
+from estimation.posegraph.synthetic import leapfrog, search_pdf
+from estimation.posegraph.validate import validate_and_repair, validate_stations
+from sensors.geometry import se2
 
 SIGMA_M, SIGMA_RAD = 0.05, math.radians(1.0)
 

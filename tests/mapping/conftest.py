@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping import _kernels as kernels
+from mapping.kernels.traversal import ray_cells
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 FR079 = DATA / "octomap_fr079"
@@ -43,5 +43,5 @@ def reference_fusion(
     free: set[tuple[int, ...]] = set()
     start = np.asarray(sensor) / resolution_m
     for end in [*list(points), *list(free_ends)]:
-        free.update(map(tuple, kernels.ray_cells(start, np.asarray(end) / resolution_m, False)))
+        free.update(map(tuple, ray_cells(start, np.asarray(end) / resolution_m, False)))
     return occupied, free - occupied

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from mapping.errors import MapError
 from mapping.fusion import Scan, check_rigid, fuse_scans, merge_grids, transform_grid
 from mapping.grid import GridParams, OccupancyGrid
-from sensors.frames import pose2_matrix
+from sensors.geometry.frames import pose2_matrix
 from tests.mapping.conftest import room_scan
 
 #: The room's corner, off the lattice's planes (surfaces on cell faces make rounding decide).

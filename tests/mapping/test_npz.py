@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping import npz
 from mapping.errors import MapError
+from mapping.formats import npz
+from mapping.formats.npz import load_map, save_map
 from mapping.grid import GridParams, OccupancyGrid
-from mapping.npz import load_map, save_map
 from tests.mapping.conftest import room_scan
 
 

@@ -9,8 +9,8 @@ import pytest
 
 from mapping.band import extract_band
 from mapping.errors import MapError
+from mapping.formats.octomap_bt import decode_bt, encode_bt, grid_from_bt, read_bt, write_bt
 from mapping.grid import GridParams, OccupancyGrid
-from mapping.octomap_bt import decode_bt, encode_bt, grid_from_bt, read_bt, write_bt
 from tests.mapping.conftest import FR079, requires_fr079, room_scan
 
 pyoctomap = pytest.importorskip("pyoctomap")

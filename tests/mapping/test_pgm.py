@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import yaml
 
-from mapping import pgm
 from mapping.band import Band
 from mapping.errors import MapError
-from mapping.pgm import UNKNOWN_PIXEL, read_band_pgm, write_band_pgm
+from mapping.formats import pgm
+from mapping.formats.pgm import UNKNOWN_PIXEL, read_band_pgm, write_band_pgm
 
 
 def sample_band() -> Band:

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping.ply import PlyError, read_ply, write_ply
+from mapping.formats.ply import PlyError, read_ply, write_ply
 
 
 def sample(n: int = 50) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -100,8 +100,8 @@ def test_failed_write_keeps_the_old_file(tmp_path: Path) -> None:
 
 
 def test_occupied_voxels_export_with_their_probability(tmp_path: Path) -> None:
+    from mapping.formats.ply import write_grid_ply
     from mapping.grid import GridParams, OccupancyGrid
-    from mapping.ply import write_grid_ply
 
     params = GridParams()
     grid = OccupancyGrid(params)

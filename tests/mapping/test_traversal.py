@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapping import _kernels as kernels
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
+from mapping.kernels.traversal import ray_cells
 from tests.mapping.conftest import reference_fusion, room_scan
 
 coordinate = st.floats(-15.0, 15.0, allow_nan=False, allow_subnormal=False)
@@ -37,7 +37,7 @@ def segment_box_gap(start: np.ndarray, end: np.ndarray, cell: np.ndarray) -> flo
 def test_traversal_visits_exactly_the_cells_of_a_supersampled_ray(
     start: np.ndarray, end: np.ndarray
 ) -> None:
-    cells = kernels.ray_cells(start, end, True)
+    cells = ray_cells(start, end, True)
     # From the start's cell to the end's, one face-neighbour step at a time.
     assert tuple(cells[0]) == tuple(np.floor(start).astype(int))
     assert tuple(cells[-1]) == tuple(np.floor(end).astype(int))
@@ -73,9 +73,9 @@ def test_traversal_visits_exactly_the_cells_of_a_supersampled_ray(
 def test_traversal_of_axis_aligned_and_tied_rays(
     start: tuple[float, ...], end: tuple[float, ...], expected: list[tuple[int, ...]]
 ) -> None:
-    cells = kernels.ray_cells(np.array(start), np.array(end), True)
+    cells = ray_cells(np.array(start), np.array(end), True)
     assert [tuple(c) for c in cells] == expected
-    assert len(kernels.ray_cells(np.array(start), np.array(end), False)) == len(expected) - 1
+    assert len(ray_cells(np.array(start), np.array(end), False)) == len(expected) - 1
 
 
 def fused_sets(grid: OccupancyGrid) -> tuple[set[tuple[int, ...]], set[tuple[int, ...]]]:

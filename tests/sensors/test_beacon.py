@@ -7,14 +7,14 @@ import math
 import numpy as np
 import pytest
 
-from sensors.beacon import detect_beacons, fit_circle_fixed_radius
+from sensors.geometry.frames import scanner_pose_matrix
 from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
-from sensors.mirror import MirrorGeometry, assemble_sweeps, estimate_mirror, scan_times
+from sensors.scan3d.beacon import detect_beacons, fit_circle_fixed_radius
+from sensors.scan3d.mirror import MirrorGeometry, assemble_sweeps, estimate_mirror, scan_times
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import (
     RobotBody,
     SimulatedScanner,
-    robot_pose_matrix,
     scan_stream,
     telegram_times,
     world_with_robots,
@@ -43,7 +43,7 @@ def hall(*boxes: dict) -> World:  # type: ignore[type-arg]
 
 def observe(world: World, separation_m: float, bearing_rad: float, heading_rad: float, seed: int):  # type: ignore[no-untyped-def]
     """Robot B placed so that its beacon is at (separation, bearing) from A's scanner."""
-    T = robot_pose_matrix(*SCANNER_A, BODY.scanner_x_m, 0.45)
+    T = scanner_pose_matrix(*SCANNER_A, BODY.scanner_x_m, 0.45)
     bx = T[0, 3] + separation_m * math.cos(bearing_rad)
     by = T[1, 3] + separation_m * math.sin(bearing_rad)
     ahead = BODY.scanner_x_m + BODY.beacon_offset_m

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from sensors.frames import pose2_matrix, transform_points, transform_vectors
+from sensors.geometry.frames import pose2_matrix, transform_points, transform_vectors
 
 
 def test_pose2_maps_points_into_the_parent_frame() -> None:

@@ -9,10 +9,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from estimation.resources import resolve_builtin
+from estimation.app.resources import resolve_builtin
 from sensors.errors import SensorError
+from sensors.geometry.frames import scanner_pose_matrix
 from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
-from sensors.mirror import (
+from sensors.scan3d.mirror import (
     MirrorGeometry,
     assemble_sweeps,
     elevation_at,
@@ -22,7 +23,7 @@ from sensors.mirror import (
     scan_times,
 )
 from sensors.sim.scene import RaycastScene, build_mesh
-from sensors.sim.sensing import SimulatedScanner, robot_pose_matrix, scan_stream, telegram_times
+from sensors.sim.sensing import SimulatedScanner, scan_stream, telegram_times
 from sensors.sim.world import load_world
 
 GEOMETRY = MirrorGeometry(axis_offset_m=0.1, gear_ratio=80.0, nominal_motor_period_s=0.5)
@@ -106,7 +107,7 @@ def simulate(scene: RaycastScene, *, drop: float, seconds: float, seed: int = 0,
     )  # fmt: skip
     times = telegram_times(0.0, seconds, 38400, 101, 1.0)
     truth = scanner.scan(
-        scene, robot_pose_matrix(*pose, 0.1, 0.45), times, np.random.default_rng(seed)
+        scene, scanner_pose_matrix(*pose, 0.1, 0.45), times, np.random.default_rng(seed)
     )
     parser = StreamParser()
     decoded = [

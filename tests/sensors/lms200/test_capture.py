@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.cli import app
+from estimation.app.cli.main import app
 from sensors.lms200 import protocol as p
 from sensors.lms200.capture import CaptureError, CaptureReader, CaptureWriter, decode_stream
 

@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 
 from sensors.errors import SensorError
-from sensors.mirror import MirrorGeometry
+from sensors.geometry.frames import scanner_pose_matrix
+from sensors.scan3d.mirror import MirrorGeometry
 from sensors.sim.planner import free_space
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import (
     RobotBody,
     SimulatedScanner,
     robot_cylinders,
-    robot_pose_matrix,
     world_with_robots,
 )
 from sensors.sim.world import World, load_world, world_from_mapping
@@ -43,7 +43,7 @@ def test_analytic_robots_match_meshed_robots() -> None:
     mesh_scene = RaycastScene(build_mesh(meshed, cylinder_segments=512))
     plain_scene = RaycastScene(build_mesh(world))
     times = np.arange(0.0, 20.0, 0.08)
-    T = robot_pose_matrix(2.0, 4.0, 0.1, 0.1, 0.45)
+    T = scanner_pose_matrix(2.0, 4.0, 0.1, 0.1, 0.45)
     cylinders = np.broadcast_to(robot_cylinders(BODY, np.array([other])), (len(times), 2, 6))
     a = SCANNER.scan(mesh_scene, T, times, np.random.default_rng(0))
     b = SCANNER.scan(plain_scene, T, times, np.random.default_rng(0), cylinders=cylinders)
@@ -57,7 +57,7 @@ def test_analytic_robots_match_meshed_robots() -> None:
 def test_moving_scanner_takes_one_pose_per_scan() -> None:
     scene = RaycastScene(build_mesh(big_room()))
     times = np.arange(0.0, 2.0, 0.08)
-    poses = np.stack([robot_pose_matrix(2.0 + 0.2 * t, 4.0, 0.0, 0.1, 0.45) for t in times])
+    poses = np.stack([scanner_pose_matrix(2.0 + 0.2 * t, 4.0, 0.0, 0.1, 0.45) for t in times])
     moving = SCANNER.scan(scene, poses, times, np.random.default_rng(0))
     still = SCANNER.scan(scene, poses[0], times, np.random.default_rng(0))
     # Driving towards the far wall shortens the forward ranges over time.

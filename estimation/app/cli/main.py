@@ -1,0 +1,46 @@
+"""The ``coopmap`` command line.
+
+Every command takes ``--config FILE`` (YAML overrides of ``configs/default.yaml``). Known errors
+print one line on stderr and exit with code 2, never a traceback. Each command is a thin shell
+around a typed function that tests call directly; heavy modules are imported inside commands so
+that ``coopmap --help`` stays fast. The commands live beside this module, one module per group.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from estimation.app.cli import bench, lms, localize, mission, world
+
+__all__ = ["app", "main"]
+
+app = typer.Typer(
+    name="coopmap",
+    help="Cooperative 3D mapping by mobile robots that localize each other.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
+)
+app.command()(mission.demo)
+app.command()(mission.simulate)
+app.command()(mission.batch)
+app.command()(mission.isam)
+app.command()(mission.evaluate)
+app.command()(localize.localize)
+app.command("evaluate-localization")(localize.evaluate_localization)
+app.add_typer(world.world_app, name="world")
+app.add_typer(world.config_app, name="config")
+app.add_typer(bench.bench_app, name="bench")
+app.add_typer(lms.lms_app, name="lms")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except KeyboardInterrupt:
+        typer.echo("coopmap: interrupted", err=True)
+        sys.exit(130)

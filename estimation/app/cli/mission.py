@@ -1,0 +1,227 @@
+"""Mission commands: demo, simulate, batch, isam, evaluate."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from estimation.app.cli.common import (
+    ConfigOption,
+    JsonOption,
+    cli_errors,
+    make_console,
+    option_config,
+)
+from estimation.app.config import ConfigError
+
+
+@cli_errors
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")] = Path("runs/demo"),
+    config: ConfigOption = None,
+    seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
+) -> None:
+    """Simulate the default mission (essex_lab, two robots), optimize, fuse, evaluate, render."""
+    import time
+
+    from estimation.app.evaluation.evaluate import evaluate as run_evaluate
+    from estimation.app.pipeline import run_batch
+    from estimation.app.resources import resolve_builtin
+    from estimation.app.sim.demo import DEFAULT_POSE, DEFAULT_WORLD, run_demo
+    from estimation.app.sim.simulate import run_simulation
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    cfg = option_config(config)
+    started = time.perf_counter()
+    err = make_console(stderr=True)
+    with err.status("simulating the essex_lab mission…", spinner="dots") as status:
+        sim = run_simulation(
+            resolve_builtin("missions", "essex_lab"), out, overrides=overrides, seed=seed,
+            progress=lambda robot, f: status.update(f"simulating: robot {robot} ({f:.0%})"),
+        )  # fmt: skip
+        status.update("decoding, mutual localization, pose graph, fusion…")
+        output = run_batch(out, overrides=overrides, progress=status.update)
+        status.update("evaluating against the ground truth…")
+        metrics = run_evaluate(out)
+        status.update("rendering the world and a 360° view…")
+        view = run_demo(out / "result" / "view", cfg, world=DEFAULT_WORLD, pose=DEFAULT_POSE)
+    console = make_console()
+    console.print(
+        f"coopmap demo: {sim.world}, {len(sim.poses)} robots, {sim.steps} leapfrog steps, "
+        f"{sim.duration_s:.0f} s of mission simulated, processed and evaluated in "
+        f"{time.perf_counter() - started:.1f} s"
+    )
+    for robot, m in metrics["robots"].items():
+        if m.get("poses"):
+            console.print(
+                f"  robot {robot}: {m['poses']} poses, ATE {m['ate_m'] * 100:.1f} cm / "
+                f"{m['ate_deg']:.2f}°"
+            )
+    quality = metrics["map"]
+    console.print(
+        f"  mutual observations: {output.report['observations']}; map: "
+        f"{output.report.get('occupied_voxels', 0):,} occupied voxels, precision "
+        f"{quality['precision']:.3f}, recall {quality['recall']:.3f} "
+        f"at {quality['resolution_m']:g} m"
+    )
+    result = out / "result"
+    console.print(f"  dataset: {out}/  result: {result}/  report: {result / 'report.md'}")
+    figures = sorted((result / "figures").glob("*.png")) + [
+        p for _, p in view.outputs if p.suffix == ".png"
+    ]
+    console.print("  figures: " + ", ".join(str(p) for p in figures))
+
+
+@cli_errors
+def simulate(
+    mission: Annotated[
+        Path, typer.Argument(help="A mission YAML file or a built-in mission name.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to write.")],
+    seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Simulate a cooperative mission: world + robots + sensors → a recorded dataset."""
+    from estimation.app.resources import resolve_builtin
+    from estimation.app.sim.simulate import run_simulation
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    path = resolve_builtin("missions", mission)
+    err = make_console(stderr=True)
+    with err.status(f"simulating {path.stem}…", spinner="dots") as status:
+
+        def progress(robot: str, fraction: float) -> None:
+            status.update(f"simulating {path.stem}: sensors of robot {robot} ({fraction:.0%})")
+
+        result = run_simulation(path, out, overrides=overrides, seed=seed, progress=progress)
+    console = make_console()
+    poses = ", ".join(f"{name} {count}" for name, count in result.poses.items())
+    console.print(
+        f"coopmap simulate: {result.mission} in {result.world} (seed {result.seed}): "
+        f"{result.steps} leapfrog steps over {result.duration_s:.0f} s; poses per robot: {poses}; "
+        f"{sum(result.telegrams.values()):,} LMS telegrams"
+        + (f"; {len(result.changed)} objects moved afterwards" if result.changed else "")
+    )
+    console.print(f"  wrote {result.out_dir}/")
+
+
+@cli_errors
+def batch(
+    dataset: Annotated[Path, typer.Argument(help="A dataset folder (coopmap simulate).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
+    from estimation.app.pipeline import run_batch
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    err = make_console(stderr=True)
+    with err.status(f"processing {dataset}…", spinner="dots") as status:
+        output = run_batch(dataset, out, overrides=overrides, progress=status.update)
+    r = output.report
+    poses = ", ".join(f"{name} {s['poses']}" for name, s in r["robots"].items())
+    make_console().print(
+        f"coopmap batch: {r['sweeps']} sweeps, {r['observations']} mutual observations "
+        f"({len(r['gate_rejections'])} gated out, {len(r['outlier_factors'])} outliers), "
+        f"poses: {poses}; {r.get('occupied_voxels', 0):,} occupied voxels; "
+        f"{r['timings_s']['total']:.1f} s"
+    )
+    make_console().print(f"  wrote {output.out_dir}/")
+
+
+@cli_errors
+def isam(
+    dataset: Annotated[Path, typer.Argument(help="A dataset folder (coopmap simulate).")],
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
+    resume: Annotated[
+        bool, typer.Option(help="Continue from the checkpoint of a cut-short run.")
+    ] = False,
+    config: ConfigOption = None,
+) -> None:
+    """Incremental iSAM2 over the same data, event by event, with checkpoints."""
+    from estimation.app.pipeline import run_isam
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    err = make_console(stderr=True)
+    with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
+        output = run_isam(dataset, out, overrides=overrides, resume=resume, progress=status.update)
+    assert output is not None
+    r = output.report
+    make_console().print(
+        f"coopmap isam: {r['isam2']['events']} events"
+        + (" (resumed)" if resume else "")
+        + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
+        f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
+    )
+    make_console().print(f"  wrote {output.out_dir}/")
+
+
+@cli_errors
+def evaluate(
+    dataset: Annotated[
+        Path, typer.Argument(help="A simulated dataset folder (with ground truth).")
+    ],
+    result: Annotated[
+        Path | None, typer.Option(help="Result folder (default DATASET/result).")
+    ] = None,
+    json_out: JsonOption = False,
+) -> None:
+    """Accuracy against the dataset's ground truth; writes metrics.json beside the result."""
+    import json
+
+    from estimation.app.evaluation.evaluate import evaluate as run_evaluate
+
+    metrics = run_evaluate(dataset, result)
+    if json_out:
+        typer.echo(json.dumps(metrics))
+        return
+    console = make_console()
+    for robot, m in metrics["robots"].items():
+        if m.get("poses"):
+            console.print(
+                f"robot {robot}: {m['poses']} poses, ATE {m['ate_m'] * 100:.1f} cm / "
+                f"{m['ate_deg']:.2f}°"
+                + (f", RPE {m['rpe_m'] * 100:.1f} cm / {m['rpe_deg']:.2f}°" if "rpe_m" in m else "")
+            )
+    mutual, quality = metrics["mutual"], metrics["map"]
+    if mutual["median_m"] is not None:
+        console.print(
+            f"mutual: {mutual['events']} events, {mutual['rejected']} gated out, median error "
+            f"{mutual['median_m'] * 100:.1f} cm / {mutual['median_deg']:.2f}°"
+        )
+    gate = mutual.get("gate")
+    if gate:
+        console.print(
+            f"gate: accepted {gate['accepted_true']} true / {gate['accepted_false']} false, "
+            f"rejected {gate['rejected_true']} true / {gate['rejected_false']} false"
+            f" (+{gate['rejected_without_pose']} without a pose)"
+        )
+    found = metrics.get("global_localization", {})
+    for kind, name in (("link", "station links"), ("loop", "loop closures")):
+        entry = found.get(kind)
+        if entry and entry.get("used"):
+            console.print(
+                f"{name}: {entry['used']} of {entry['searches']} searches used, "
+                f"{entry['used_within_10cm_1deg']} within 10 cm and 1°, median error "
+                f"{entry['used_median_m'] * 100:.1f} cm / {entry['used_median_deg']:.2f}°, max "
+                f"{entry['used_max_m'] * 100:.1f} cm / {entry['used_max_deg']:.2f}°"
+            )
+        elif entry:
+            console.print(f"{name}: none of {entry['searches']} searches used")
+    validation = found.get("validation")
+    if validation:
+        console.print(
+            f"validator: {validation['checks']} search results checked, "
+            f"{len(validation['outside'])} outside their region, "
+            f"{len(validation['flagged'])} factors flagged"
+        )
+    console.print(
+        f"map at {quality['resolution_m']:g} m: precision {quality['precision']:.3f}, "
+        f"recall {quality['recall']:.3f} ({quality['occupied']:,} occupied cells)"
+    )

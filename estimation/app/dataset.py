@@ -1,0 +1,391 @@
+"""A recorded dataset (docs/dataset.md), read and turned into the estimator's event stream.
+
+Per robot, the raw LMS bytes are decoded with the real parser; every dwell (all robots still)
+yields one full sweep per robot — the mirror's motor rate and phase estimated from the arm and
+edge-on signatures inside that dwell — converted to 3D points, in which the beacons are found.
+The dataset's event log becomes the estimator's event stream: a gauge prior on the first robot's
+start, odometry between each robot's stops, and the mutual observations of every dwell between
+its reference and mapper (gated by s1/s2 in the graph builder).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from estimation.app.config import Config, ConfigError, config_from_mapping
+from estimation.app.rig import T_robot_scanner, beacon_parameters, graph_settings, mirror_geometry
+from estimation.posegraph.events import Event, Move, Observe, Start
+from estimation.posegraph.graph import GraphBuilder
+from estimation.posegraph.keys import pose_key
+from estimation.search.stations import Dwell, Station, View
+from sensors.errors import SensorError
+from sensors.geometry import se2
+from sensors.geometry.frames import pose2_matrix
+from sensors.lms200.capture import CaptureReader
+from sensors.lms200.protocol import ProtocolError, Scan, StreamParser, Telegram, decode_scan
+from sensors.scan3d.beacon import BeaconDetection, detect_beacons
+from sensors.scan3d.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
+from sensors.trajio import read_tum
+from sensors.yamlio import merge_mappings
+
+__all__ = [
+    "Counts",
+    "Dataset",
+    "EventStream",
+    "RobotStream",
+    "Sweep",
+    "build_events",
+    "decode_robot",
+    "load_dataset",
+    "mapping_sweeps",
+    "relocalization_dwells",
+    "stations",
+    "sweep_in",
+]
+
+Progress = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """A recorded mission (docs/dataset.md), as read from its folder."""
+
+    path: Path
+    config: Config
+    robots: list[str]
+    starts: dict[str, np.ndarray]  # declared start poses (x_m, y_m, yaw_rad): the map frame
+    events: list[dict[str, Any]]
+    mission: dict[str, Any]
+
+    def stop_times(self, robot: str) -> dict[int, float]:
+        """When each pose index of ``robot`` began (index 0 at the start)."""
+        times = {0: 0.0}
+        for e in self.events:
+            if e["event"] == "move" and e["robot"] == robot:
+                times[int(e["to_index"])] = float(e["t_s"])
+        return times
+
+
+def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> Dataset:
+    """Read ``mission.yaml`` and ``events.jsonl``; the effective config is the mission's, with
+    ``overrides`` merged over it."""
+    path = Path(path)
+    mission_file = path / "mission.yaml"
+    events_file = path / "events.jsonl"
+    for needed in (mission_file, events_file):
+        if not needed.is_file():
+            raise ConfigError(f"{path}: not a coopmap dataset ({needed.name} is missing)")
+    try:
+        mission = yaml.safe_load(mission_file.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{mission_file}: malformed YAML: {exc}") from None
+    if not isinstance(mission, dict) or "robots" not in mission:
+        raise ConfigError(f"{mission_file}: not a mission (no robots)")
+    config_doc = mission.get("config") or {}
+    merged = merge_mappings(config_doc, overrides or {})
+    config = config_from_mapping(merged, source=str(mission_file))
+    events = []
+    for number, line in enumerate(events_file.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            event = json.loads(line)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{events_file}:{number}: not JSON: {exc.msg}") from None
+        if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
+            raise ConfigError(f"{events_file}:{number}: an event needs 'event' and 't_s'")
+        events.append(event)
+    robots = [str(r["name"]) for r in mission["robots"]]
+    starts = {
+        str(r["name"]): np.array([r["start"][0], r["start"][1], math.radians(r["start"][2])])
+        for r in mission["robots"]
+    }
+    return Dataset(path, config, robots, starts, events, mission)
+
+
+@dataclass
+class Sweep:
+    """One robot's 3D scan during one dwell, and the beacons found in it."""
+
+    robot: str
+    index: int
+    dwell: int
+    scan: Scan3D
+    detections: list[BeaconDetection]
+
+    def view(self) -> View:
+        """The sweep as the station searches see it."""
+        return View(self.robot, self.index, self.scan.points_scanner)
+
+
+@dataclass
+class RobotStream:
+    scans: list[Scan]
+    times_s: np.ndarray
+    telegrams: int = 0
+    undecodable: int = 0
+    checksum_failures: int = 0
+    bytes_skipped: int = 0
+    truncated_bytes: int = 0
+
+
+def decode_robot(capture: Path, measuring_mode: int) -> RobotStream:
+    """Every measured-value telegram of a capture, decoded, with its measurement time."""
+    reader = CaptureReader(capture)
+    parser = StreamParser()
+    scans: list[Scan] = []
+    undecodable = 0
+    stamp: float | None = None
+    for stamp, chunk in reader.chunks():
+        for event in parser.feed(chunk, stamp):
+            if isinstance(event, Telegram) and event.code == 0xB0:
+                try:
+                    scans.append(decode_scan(event, measuring_mode))
+                except ProtocolError:
+                    undecodable += 1
+    parser.close(stamp)
+    if not scans:
+        raise SensorError(f"{capture}: no measured values in the capture")
+    scans = [s for s in scans if s.stamp_s is not None]
+    return RobotStream(
+        scans=scans,
+        times_s=scan_times(scans),
+        telegrams=parser.stats.telegrams,
+        undecodable=undecodable,
+        checksum_failures=parser.stats.checksum_failures,
+        bytes_skipped=parser.stats.bytes_skipped,
+        truncated_bytes=reader.truncated_bytes,
+    )
+
+
+def sweep_in(
+    stream: RobotStream, start_s: float, end_s: float, config: Config
+) -> tuple[Scan3D | None, str | None]:
+    """The most complete sweep among the scans measured in [start_s, end_s], or why none."""
+    rows = np.flatnonzero((stream.times_s >= start_s) & (stream.times_s <= end_s))
+    if len(rows) < 50:
+        return None, f"only {len(rows)} scans in the dwell"
+    scans = [stream.scans[k] for k in rows]
+    try:
+        estimate = estimate_mirror(scans, stream.times_s[rows], mirror_geometry(config))
+    except SensorError as exc:
+        return None, str(exc)
+    sweeps = assemble_sweeps(scans, stream.times_s[rows], estimate, min_scans=60)
+    if not sweeps:
+        return None, "no complete sweep"
+    best = max(sweeps, key=lambda s: s.scans)
+    expected = 0.5 * estimate.sweep_period_s / np.median(np.diff(stream.times_s[rows]))
+    if best.scans < 0.75 * expected:
+        return None, f"sweep incomplete ({best.scans} of ~{expected:.0f} scans)"
+    return best, None
+
+
+def _pose_at(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
+    yaw = np.unwrap(poses[:, 2])
+    return np.array(
+        [
+            np.interp(t, stamps, poses[:, 0]),
+            np.interp(t, stamps, poses[:, 1]),
+            np.interp(t, stamps, yaw),
+        ]
+    )
+
+
+def _choose(
+    detections: list[BeaconDetection], predicted: tuple[float, float] | None
+) -> BeaconDetection | None:
+    """The detection that is the other robot's beacon: nearest the prediction, or the only one."""
+    if not detections:
+        return None
+    if predicted is None:
+        return detections[0] if len(detections) == 1 else max(detections, key=lambda d: d.quality)
+    a, alpha = predicted
+    return min(
+        detections,
+        key=lambda d: math.hypot(
+            d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi)
+        ),
+    )
+
+
+def _predict(
+    builder: GraphBuilder, observer: int, observed: int, config: Config
+) -> tuple[float, float] | None:
+    """Range and bearing, in the observer's scanner frame, of the observed robot's beacon as the
+    estimate so far places them (in the plane: heights do not enter range and bearing)."""
+    guesses = builder.guesses
+    if observer not in guesses or observed not in guesses:
+        return None
+    T_a = pose2_matrix(*guesses[observer]) @ T_robot_scanner(config, planar=True)
+    beacon = pose2_matrix(*guesses[observed]) @ np.array(
+        [config.robot.scanner_x_m + config.beacon.offset_m, 0, 0, 1]
+    )
+    local = np.linalg.inv(T_a) @ beacon
+    return float(math.hypot(local[0], local[1])), float(math.atan2(local[1], local[0]))
+
+
+@dataclass(frozen=True)
+class Counts:
+    """What the event stream made of the dataset's dwells."""
+
+    dwells: int
+    observations: int
+    missing_sweeps: tuple[str, ...]  # "a3 (dwell 7): why"
+    unseen: tuple[str, ...]  # "a3–b4": a pair whose beacons were not both found
+    moves_before_first_fix: int  # odometry held back until its robot was anchored
+
+
+@dataclass(frozen=True)
+class EventStream:
+    """The estimator's event stream of a dataset, the sweeps, the counts, and the graph builder
+    that consumed the events (its guesses are the estimate so far)."""
+
+    events: list[Event]
+    sweeps: list[Sweep]
+    counts: Counts
+    builder: GraphBuilder
+
+
+def build_events(
+    dataset: Dataset,
+    streams: dict[str, RobotStream],
+    progress: Progress | None = None,
+) -> EventStream:
+    """The estimator's event stream of a dataset, the sweeps, and the counts of what failed.
+
+    A builder consumes the events as they are made, so that each observation can be matched to
+    the beacon predicted by the estimate so far.
+    """
+    config = dataset.config
+    builder = GraphBuilder(graph_settings(config))
+    params = beacon_parameters(config)
+    odometry = {r: read_tum(dataset.path / "robots" / r / "odometry.tum") for r in dataset.robots}
+    gauge = dataset.robots[0]
+    events: list[Event] = []
+    sweeps: list[Sweep] = []
+    dwells = observations = held_back = 0
+    missing: list[str] = []
+    unseen: list[str] = []
+    # Odometry of a robot that moved before its first fix: (to_index, delta) per robot.
+    pending: dict[str, list[tuple[int, tuple[float, float, float]]]] = {}
+
+    def emit(event: Event) -> None:
+        builder.add(event)
+        events.append(event)
+
+    emit(Start(gauge, 0, tuple(float(v) for v in dataset.starts[gauge])))  # type: ignore[arg-type]
+    for number, entry in enumerate(dataset.events):
+        kind = entry["event"]
+        if kind == "move":
+            robot = entry["robot"]
+            stamps, poses = odometry[robot]
+            before = _pose_at(stamps, poses, float(entry["start_s"]))
+            after = _pose_at(stamps, poses, float(entry["t_s"]))
+            delta: tuple[float, float, float] = tuple(se2.between(before, after).tolist())  # type: ignore[assignment]
+            if pose_key(robot, int(entry["from_index"])) in builder.guesses:
+                emit(Move(robot, int(entry["to_index"]), delta))
+            else:
+                held_back += 1
+                pending.setdefault(robot, []).append((int(entry["to_index"]), delta))
+        elif kind == "dwell":
+            dwells += 1
+            start, end = float(entry["t_s"]), float(entry["end_s"])
+            in_dwell: dict[str, Sweep] = {}
+            for robot in dataset.robots:
+                scan, why = sweep_in(streams[robot], start + 0.2, end, config)
+                index = int(entry["poses"][robot])
+                if scan is None:
+                    missing.append(f"{robot}{index} (dwell {number}): {why}")
+                    continue
+                detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **params)
+                sweep = Sweep(robot, index, number, scan, detections)
+                sweeps.append(sweep)
+                in_dwell[robot] = sweep
+            reference, mapper = entry.get("reference"), entry.get("mapper")
+            if reference in in_dwell and mapper in in_dwell:
+                ka = pose_key(reference, in_dwell[reference].index)
+                kc = pose_key(mapper, in_dwell[mapper].index)
+                seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
+                seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
+                if seen_a is None or seen_c is None:
+                    unseen.append(
+                        f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
+                    )
+                elif ka in builder.guesses or kc in builder.guesses:
+                    observer = (reference, in_dwell[reference].index)
+                    observed = (mapper, in_dwell[mapper].index)
+                    emit(
+                        Observe(
+                            observer, observed,
+                            seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad,
+                        )
+                    )  # fmt: skip
+                    observations += 1
+                    _flush_pending(pending, builder, emit)
+        if progress is not None:
+            progress(f"event {number + 1}/{len(dataset.events)}")
+    counts = Counts(dwells, observations, tuple(missing), tuple(unseen), held_back)
+    return EventStream(events, sweeps, counts, builder)
+
+
+def _flush_pending(
+    pending: dict[str, list[tuple[int, tuple[float, float, float]]]],
+    builder: GraphBuilder,
+    emit: Callable[[Event], None],
+) -> None:
+    """Odometry of a robot that moved before its first fix joins once it is anchored."""
+    for robot, moves in list(pending.items()):
+        while moves and pose_key(robot, moves[0][0] - 1) in builder.guesses:
+            index, delta = moves.pop(0)
+            if pose_key(robot, index) not in builder.guesses:
+                emit(Move(robot, index, delta))
+        if not moves:
+            del pending[robot]
+
+
+def _relocalization_numbers(dataset: Dataset) -> set[int]:
+    return {n for n, e in enumerate(dataset.events)
+            if e["event"] == "dwell" and e.get("phase") == "relocalize"}  # fmt: skip
+
+
+def mapping_sweeps(dataset: Dataset, sweeps: list[Sweep]) -> list[Sweep]:
+    """The sweeps of the mapping: not those taken after the world changed."""
+    after = _relocalization_numbers(dataset)
+    return [s for s in sweeps if s.dwell not in after]
+
+
+def stations(dataset: Dataset, sweeps: list[Sweep]) -> list[Station]:
+    """Every reference station of the mapping with the sweeps of its dwells, in time order."""
+    by_dwell: dict[int, list[Sweep]] = {}
+    for sweep in sweeps:
+        by_dwell.setdefault(sweep.dwell, []).append(sweep)
+    found: dict[tuple[str, int], tuple[float, list[Sweep]]] = {}
+    for number, event in enumerate(dataset.events):
+        if (
+            event["event"] != "dwell"
+            or event.get("phase") == "relocalize"
+            or not event.get("reference")
+        ):
+            continue
+        reference = event["reference"]
+        key = (reference, int(event["poses"][reference]))
+        t, taken = found.get(key, (float(event["t_s"]), []))
+        found[key] = (t, taken + by_dwell.get(number, []))
+    ordered = sorted(found.items(), key=lambda kv: kv[1][0])
+    return [Station(r, i, t, tuple(s.view() for s in taken)) for (r, i), (t, taken) in ordered]
+
+
+def relocalization_dwells(dataset: Dataset, sweeps: list[Sweep]) -> list[Dwell]:
+    """The dwells after the world changed, each with every robot's sweep in it."""
+    return [
+        Dwell(float(dataset.events[n]["t_s"]), tuple(s.view() for s in sweeps if s.dwell == n))
+        for n in sorted(_relocalization_numbers(dataset))
+    ]

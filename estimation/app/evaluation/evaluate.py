@@ -1,0 +1,239 @@
+"""``coopmap evaluate``: a result against its dataset's ground truth → ``metrics.json``.
+
+* Trajectories: the pose of every (robot, index) in ``poses/<robot>.tum`` against the true pose
+  at the same stop (``ground_truth/<robot>.tum``). The gauge is the first robot's declared start,
+  so estimate and truth share the map frame: ATE is computed without alignment (RMS of position
+  and heading errors); RPE over consecutive poses of each robot.
+* Mutual localization: every mutual factor's relative pose against the true relative pose; the
+  gate's rejections and GNC's outliers are counted.
+* Map: occupied cells (P > the grid's threshold) against the voxels the world's surfaces pass
+  through (``sensors.sim.truth``), at the map's resolution. Precision: the share of occupied
+  cells within one cell of a true surface voxel; recall: the share of true surface voxels the
+  map observed (known, occupied or free) that are within one cell of an occupied cell.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimation.app.evaluation.metrics import ate, rpe
+from estimation.errors import EstimationError
+from mapping.formats.npz import load_map
+from sensors.atomic import write_text_atomic
+from sensors.sim.scene import build_mesh
+from sensors.sim.truth import surface_voxels
+from sensors.sim.world import load_world
+from sensors.trajio import read_tum
+
+__all__ = ["evaluate", "map_quality"]
+
+
+def _truth_at(dataset: Path, robot: str, stamps: np.ndarray) -> np.ndarray:
+    path = dataset / "ground_truth" / f"{robot}.tum"
+    if not path.is_file():
+        raise EstimationError(f"{dataset}: no ground truth for robot {robot!r} ({path.name})")
+    t, poses = read_tum(path)
+    # Robots stand still after each stop: half a second later is safely the stop's pose.
+    query = stamps + 0.5
+    yaw = np.unwrap(poses[:, 2])
+    return np.column_stack(
+        [
+            np.interp(query, t, poses[:, 0]),
+            np.interp(query, t, poses[:, 1]),
+            np.interp(query, t, yaw),
+        ]
+    )
+
+
+def _dilate(keys: set[tuple[int, int, int]]) -> set[tuple[int, int, int]]:
+    out = set()
+    for i, j, k in keys:
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                for dk in (-1, 0, 1):
+                    out.add((i + di, j + dj, k + dk))
+    return out
+
+
+def map_quality(grid: Any, world_path: Path) -> dict[str, Any]:
+    """Precision and recall of the occupied cells against the world's surface voxels."""
+    world = load_world(world_path)
+    params = grid.params
+    truth = surface_voxels(build_mesh(world), params.resolution_m, np.asarray(params.origin_m))
+    true_cells = {tuple(c) for c in truth.indices.tolist()}
+    occupied, _ = grid.occupied()
+    occupied_cells = {tuple(c) for c in np.asarray(occupied).tolist()}
+    if not occupied_cells:
+        return {"resolution_m": params.resolution_m, "precision": 0.0, "recall": 0.0, "occupied": 0}
+    near_truth = _dilate(true_cells)
+    near_map = _dilate(occupied_cells)
+    precision = sum(c in near_truth for c in occupied_cells) / len(occupied_cells)
+    known_cells, _ = grid.cells()
+    known = {tuple(c) for c in np.asarray(known_cells).tolist()}
+    observed_truth = [c for c in true_cells if c in known]
+    recall = sum(c in near_map for c in observed_truth) / max(1, len(observed_truth))
+    return {
+        "resolution_m": params.resolution_m,
+        "precision": precision,
+        "recall": recall,
+        "occupied": len(occupied_cells),
+        "true_surface_voxels_observed": len(observed_truth),
+        "true_surface_voxels": len(true_cells),
+    }
+
+
+def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> dict[str, Any]:
+    dataset = Path(dataset_dir)
+    result = Path(result_dir) if result_dir is not None else dataset / "result"
+    report_path = result / "report.json"
+    if not report_path.is_file():
+        raise EstimationError(f"{result}: no result here (report.json missing): run coopmap batch")
+    report = json.loads(report_path.read_text(encoding="utf-8"))
+    metrics: dict[str, Any] = {"robots": {}}
+    all_est, all_true = [], []
+    for robot in sorted(report["robots"]):
+        tum = result / "poses" / f"{robot}.tum"
+        if not tum.is_file():
+            metrics["robots"][robot] = {"poses": 0}
+            continue
+        stamps, estimate = read_tum(tum)
+        truth = _truth_at(dataset, robot, stamps)
+        a = ate(estimate, truth, align=False)
+        entry = {"poses": len(stamps), "ate_m": a.rmse_m, "ate_deg": math.degrees(a.rmse_rad),
+                 "max_m": a.max_m}  # fmt: skip
+        if len(stamps) > 1:
+            r = rpe(estimate, truth)
+            entry.update(rpe_m=r.rmse_m, rpe_deg=math.degrees(r.rmse_rad))
+        metrics["robots"][robot] = entry
+        all_est.append(estimate)
+        all_true.append(truth)
+    rows = _mutual_rows(dataset, report)
+    accepted = np.array([r[:2] for r in rows if r[2]]).reshape(-1, 2)
+    metrics["mutual"] = {
+        "events": report["observations"],
+        "accepted": report["observations"] - len(report["gate_rejections"]),
+        "rejected": len(report["gate_rejections"]),
+        "outliers_after_gnc": len(report["outlier_factors"]),
+        "median_m": float(np.median(accepted[:, 0])) if len(accepted) else None,
+        "median_deg": float(np.degrees(np.median(accepted[:, 1]))) if len(accepted) else None,
+        "max_m": float(accepted[:, 0].max()) if len(accepted) else None,
+        "gate": _gate_table(rows),
+    }
+    metrics["global_localization"] = _search_errors(dataset, report.get("global_localization", {}))
+    metrics["map"] = map_quality(load_map(result / "map.npz"), dataset / "world.yaml")
+    metrics["timings_s"] = report["timings_s"]
+    metrics["failures"] = {
+        "missing_sweeps": len(report["missing_sweeps"]),
+        "unseen_pairs": len(report["unseen_pairs"]),
+        "dropped_poses": len(report["dropped_poses"]),
+    }
+    write_text_atomic(result / "metrics.json", json.dumps(metrics, indent=1) + "\n")
+    return metrics
+
+
+#: A mutual observation is "true" when its relative pose is this close to the truth.
+TRUE_M, TRUE_DEG = 0.1, 1.0
+
+
+def _relative_truth(
+    dataset: Path, stops: dict[str, dict[int, float]], a: str, b: str
+) -> np.ndarray:
+    """The true T_a_b of two pose labels ("a3", "b4") at their stop times."""
+    pa, pb = (
+        _truth_at(dataset, label[0], np.array([stops[label[0]][int(label[1:])]]))[0]
+        for label in (a, b)
+    )
+    c, s = math.cos(pa[2]), math.sin(pa[2])
+    dx, dy = pb[0] - pa[0], pb[1] - pa[1]
+    return np.array([c * dx + s * dy, -s * dx + c * dy, pb[2] - pa[2]])
+
+
+def _mutual_rows(dataset: Path, report: dict[str, Any]) -> list[tuple[float, float, bool]]:
+    """(|error| m, |error| rad or NaN, accepted) of every mutual observation the gate saw."""
+    from estimation.app.dataset import load_dataset
+
+    data = load_dataset(dataset)
+    stops = {robot: data.stop_times(robot) for robot in data.robots}
+    rows = []
+    for row in report.get("mutual_observations", []):
+        measured = row.get("measurement")
+        if measured is None:
+            rows.append((math.nan, math.nan, bool(row["accepted"])))
+            continue
+        truth = _relative_truth(dataset, stops, *row["pair"])
+        rows.append((math.dist(measured[:2], truth[:2]),
+                     abs(math.remainder(measured[2] - truth[2], 2 * math.pi)),
+                     bool(row["accepted"])))  # fmt: skip
+    return rows
+
+
+def _gate_table(rows: list[tuple[float, float, bool]]) -> dict[str, int]:
+    """The gate's decisions against the truth: a measurement is true within TRUE_M / TRUE_DEG."""
+    table = {"accepted_true": 0, "accepted_false": 0, "rejected_true": 0, "rejected_false": 0,
+             "rejected_without_pose": 0}  # fmt: skip
+    for error_m, error_rad, accepted in rows:
+        if math.isnan(error_m):
+            table["rejected_without_pose" if not accepted else "accepted_false"] += 1
+            continue
+        true = error_m < TRUE_M and math.degrees(error_rad) < TRUE_DEG
+        table[f"{'accepted' if accepted else 'rejected'}_{'true' if true else 'false'}"] += 1
+    return table
+
+
+def _search_errors(dataset: Path, found: dict[str, Any]) -> dict[str, Any]:
+    """Errors of every search against the truth: loop-closure searches give a station's pose in
+    an older station's frame; relocalizations a robot's pose in the map frame."""
+    from estimation.app.dataset import load_dataset
+
+    data = load_dataset(dataset)
+    stops = {robot: data.stop_times(robot) for robot in data.robots}
+
+    def truth(label: str, at: float | None = None) -> np.ndarray:
+        t = stops[label[0]][int(label[1:])] if at is None else at
+        return _truth_at(dataset, label[0], np.array([t]))[0]
+
+    def error(pose: list[float], expected: np.ndarray) -> tuple[float, float]:
+        return (math.dist(pose[:2], expected[:2]),
+                abs(math.degrees(math.remainder(pose[2] - expected[2], 2 * math.pi))))  # fmt: skip
+
+    out: dict[str, Any] = {"factors": found.get("factors", 0),
+                           "validation": found.get("validation")}  # fmt: skip
+    rows: dict[str, list[tuple[float, float, bool]]] = {}
+    for record in found.get("searches", []):
+        relative = _relative_truth(dataset, stops, record["against"], record["station"])
+        kind = record.get("kind", "loop")
+        rows.setdefault(kind, []).append((*error(record["pose"], relative), record["used"]))
+    out["searches"] = sum(len(r) for r in rows.values())
+    for kind, kind_rows in sorted(rows.items()):
+        e = np.array(kind_rows, dtype=float)
+        used = e[:, 2] > 0
+        entry: dict[str, Any] = {"searches": len(e), "used": int(used.sum()),
+                                 "median_m": float(np.median(e[:, 0])),
+                                 "median_deg": float(np.median(e[:, 1]))}  # fmt: skip
+        if used.any():
+            u = e[used]
+            within = (u[:, 0] < 0.1) & (u[:, 1] < 1.0)
+            entry.update(used_median_m=float(np.median(u[:, 0])),
+                         used_median_deg=float(np.median(u[:, 1])),
+                         used_max_m=float(u[:, 0].max()), used_max_deg=float(u[:, 1].max()),
+                         used_within_10cm_1deg=int(within.sum()))  # fmt: skip
+        out[kind] = entry
+    for band in ("ceiling", "floor"):
+        errors = []
+        for record in found.get("relocalization", []):
+            if record["band"] == band:
+                expected = truth(record["station"], record["time_s"] + 1.0)
+                errors.append(error(record["pose"], expected))
+        if errors:
+            e = np.array(errors)
+            ok = (e[:, 0] < 0.1) & (e[:, 1] < 1.0)
+            out[f"relocalization_{band}"] = {
+                "searches": len(e), "success": int(ok.sum()),
+                "median_m": float(np.median(e[:, 0])), "median_deg": float(np.median(e[:, 1])),
+            }  # fmt: skip
+    return out

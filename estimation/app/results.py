@@ -1,0 +1,159 @@
+"""The result directory of a run (DESIGN §12), written whole or not at all.
+
+``poses/<robot>.tum`` (one line per pose index, stamped when the robot stopped there),
+``graph.g2o`` (vertices and relative-pose edges with their information; the gauge as FIX),
+``map.npz`` (lossless, versioned), ``map.ply`` (occupied voxel centres), ``ceiling.pgm`` +
+``ceiling.yaml`` (ROS map_server), ``figures/*.png``, ``report.md``, ``report.json`` and the
+effective ``config.yaml``. Everything goes to a fresh sibling folder that replaces the old
+result only when all of it was written.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from estimation import __version__
+from estimation.app.config import Config, config_to_yaml
+from estimation.posegraph.keys import key_label, pose_key
+from mapping.band import extract_band
+from mapping.errors import MapError
+from mapping.formats.npz import save_map
+from mapping.formats.pgm import write_band_pgm
+from mapping.formats.ply import write_grid_ply
+from sensors.atomic import replace_directory, write_text_atomic
+from sensors.trajio import G2oGraph, write_g2o, write_tum
+
+if TYPE_CHECKING:
+    from estimation.app.dataset import Sweep
+    from estimation.posegraph.graph import FactorSpec
+    from mapping.grid import OccupancyGrid
+
+__all__ = ["BatchOutput", "graph_to_g2o", "report_markdown", "write_results"]
+
+
+@dataclass
+class BatchOutput:
+    """A run's result: poses per robot and pose index, their stamps, the sweeps, the factors
+    solved and their inlier flags, the fused grid, and the report (``report.json``)."""
+
+    out_dir: Path
+    poses: dict[str, dict[int, np.ndarray]]
+    stamps: dict[str, dict[int, float]]
+    sweeps: list[Sweep]
+    factors: list[FactorSpec]
+    inliers: np.ndarray
+    grid: OccupancyGrid
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
+    """The optimized graph in g2o form; vertex ids number the keys in (robot, index) order."""
+    keys = sorted(
+        {k for f in output.factors for k in f.keys},
+        key=lambda k: key_label(k),
+    )
+    ids = {k: n for n, k in enumerate(keys)}
+    estimate = {
+        pose_key(robot, index): pose
+        for robot, poses in output.poses.items()
+        for index, pose in poses.items()
+    }
+    edges, measurements, information, fixed = [], [], [], []
+    for factor, inlier in zip(output.factors, output.inliers, strict=True):
+        if len(factor.keys) == 1:
+            fixed.append(ids[factor.keys[0]])
+            continue
+        if not inlier:
+            continue
+        edges.append([ids[factor.keys[0]], ids[factor.keys[1]]])
+        measurements.append(factor.measurement)
+        information.append(np.linalg.inv(factor.covariance))
+    graph = G2oGraph(
+        vertex_ids=np.arange(len(keys)),
+        poses=np.array([estimate.get(k, np.zeros(3)) for k in keys]).reshape(-1, 3),
+        edges=np.array(edges, dtype=int).reshape(-1, 2),
+        measurements=np.array(measurements).reshape(-1, 3),
+        information=np.array(information).reshape(-1, 3, 3),
+        fixed=tuple(sorted(set(fixed))),
+    )
+    return graph, ids
+
+
+def write_results(output: BatchOutput, config: Config) -> None:
+    with replace_directory(output.out_dir) as work:
+        for robot, poses in output.poses.items():
+            if not poses:
+                continue
+            indices = sorted(poses)
+            stamps = np.array([output.stamps[robot].get(i, math.nan) for i in indices])
+            write_tum(
+                work / "poses" / f"{robot}.tum", stamps, np.array([poses[i] for i in indices])
+            )
+        graph, ids = graph_to_g2o(output)
+        write_g2o(work / "graph.g2o", graph)
+        save_map(work / "map.npz", output.grid)
+        occupied = write_grid_ply(work / "map.ply", output.grid)
+        band = config.bands.ceiling
+        try:
+            ceiling = extract_band(
+                output.grid, band.min_m, band.max_m,
+                free_min_observed=config.bands.free_min_observed,
+            )  # fmt: skip
+            write_band_pgm(work / "ceiling.yaml", ceiling)
+        except MapError as exc:
+            ceiling = None
+            output.report["ceiling"] = f"not written: {exc}"
+        output.report["occupied_voxels"] = occupied
+        output.report["g2o_vertices"] = {key_label(k): n for k, n in ids.items()}
+        figures = work / "figures"
+        from estimation.app.figures import render_map_cubes, render_trajectories
+
+        if ceiling is not None:
+            render_trajectories(ceiling, output.poses, figures / "ceiling_trajectories.png")
+        render_map_cubes(output.grid, figures / "map_cubes.png")
+        header = f"# effective configuration; coopmap {__version__}\n"
+        write_text_atomic(work / "config.yaml", header + config_to_yaml(config))
+        write_text_atomic(work / "report.md", report_markdown(output))
+        write_text_atomic(
+            work / "report.json", json.dumps(output.report, indent=1, default=float) + "\n"
+        )
+
+
+def report_markdown(output: BatchOutput, metrics: dict[str, Any] | None = None) -> str:
+    r = output.report
+    lines = [
+        "# coopmap result",
+        "",
+        f"Dataset `{r['dataset']}`, coopmap {r['coopmap']}.",
+        "",
+        "| robot | poses | telegrams | checksum failures | undecodable | bytes skipped |",
+        "|---|---|---|---|---|---|",
+    ]
+    for robot, s in r["robots"].items():
+        lines.append(
+            f"| {robot} | {s['poses']} | {s['telegrams']} | {s['checksum_failures']} | "
+            f"{s['undecodable']} | {s['bytes_skipped']} |"
+        )
+    lines += [
+        "",
+        f"* dwells: {r['dwells']}, sweeps: {r['sweeps']}, mutual observations: {r['observations']}",
+        f"* factors: {r['factors']}, rejected by the gate: {len(r['gate_rejections'])}, "
+        f"outliers after GNC: {len(r['outlier_factors'])}",
+        f"* occupied voxels: {r.get('occupied_voxels', 0)}",
+        f"* missing sweeps: {len(r['missing_sweeps'])}; pairs without a beacon: "
+        f"{len(r['unseen_pairs'])}; poses not connected to the map: {len(r['dropped_poses'])}",
+        "",
+        "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items()),
+        "",
+        "![ceiling band and trajectories](figures/ceiling_trajectories.png)",
+        "",
+        "![occupied cells](figures/map_cubes.png)",
+        "",
+    ]
+    return "\n".join(lines)

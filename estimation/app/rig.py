@@ -1,0 +1,231 @@
+"""The ``from_config`` glue: core parameter objects built from the configuration.
+
+Core code takes explicit arguments; these factories read them from a
+:class:`~estimation.app.config.Config` so that every command builds the same scanner, mirror,
+beacon detector, simulated robot, graph settings and search parameters from one file.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from estimation.app.config import Config, SearchConfig
+from estimation.posegraph.graph import GraphSettings
+from estimation.search.exhaustive import SearchParams
+from estimation.search.stations import StationParams
+from mapping.grid import GridParams
+from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
+from sensors.lms200.driver import Lms200
+from sensors.scan3d.mirror import MirrorGeometry
+from sensors.sim.scene import RaycastScene, build_mesh
+from sensors.sim.sensing import RobotBody, SimulatedScanner, world_with_robots
+from sensors.sim.world import World
+
+__all__ = [
+    "T_robot_scanner",
+    "beacon_parameters",
+    "driver_from_config",
+    "graph_settings",
+    "mirror_geometry",
+    "robot_body",
+    "search_params",
+    "simulated_scan_source",
+    "simulated_scanner",
+    "station_params",
+]
+
+
+def mirror_geometry(config: Config) -> MirrorGeometry:
+    m = config.mirror
+    return MirrorGeometry(
+        axis_offset_m=m.axis_offset_m,
+        gear_ratio=m.gear_ratio,
+        nominal_motor_period_s=m.period_s / m.gear_ratio,
+        elevation_offset_rad=m.elevation_offset_rad,
+        elevation_min_rad=m.elevation_min_rad,
+        elevation_max_rad=m.elevation_max_rad,
+        arm_samples=m.arm_samples,
+        arm_max_range_m=m.arm_max_range_m,
+        edge_on_half_width_rad=m.edge_on_half_width_rad,
+        edge_on_beams_rad=math.radians(m.edge_on_beams_deg),
+        edge_on_motor_phase_rad=math.radians(m.edge_on_motor_phase_deg),
+    )
+
+
+def robot_body(config: Config) -> RobotBody:
+    r, b = config.robot, config.beacon
+    return RobotBody(
+        footprint_radius_m=r.footprint_radius_m,
+        body_height_m=r.body_height_m,
+        scanner_x_m=r.scanner_x_m,
+        beacon_offset_m=b.offset_m,
+        beacon_height_m=b.height_m,
+        beacon_radius_m=b.radius_m,
+        beacon_length_m=b.length_m,
+    )
+
+
+def beacon_parameters(config: Config) -> dict[str, Any]:
+    """Keyword arguments of :func:`sensors.scan3d.beacon.detect_beacons`."""
+    b = config.beacon
+    return {
+        "radius_m": b.radius_m,
+        "center_height_m": b.height_m - config.robot.scanner_height_m,
+        "length_m": b.length_m,
+        "height_tolerance_m": b.height_tolerance_m,
+        "radius_tolerance_m": b.radius_tolerance_m,
+        "min_returns": b.min_returns,
+        "max_range_m": b.max_range_m,
+        "blind_wedge_rad": b.blind_wedge_rad,
+    }
+
+
+def T_robot_scanner(config: Config, *, planar: bool = False) -> np.ndarray:
+    """Where the robot carries its scanner (``planar``: at the floor's height, for range and
+    bearing in the plane)."""
+    r = config.robot
+    return scanner_mount(r.scanner_x_m, 0.0 if planar else r.scanner_height_m)
+
+
+def graph_settings(config: Config) -> GraphSettings:
+    g = config.graph
+    return GraphSettings(
+        prior_sigma_m=g.prior_sigma_m,
+        prior_sigma_rad=g.prior_sigma_rad,
+        odometry_sigma_m=g.odometry_sigma_m,
+        odometry_sigma_per_m=g.odometry_sigma_per_m,
+        odometry_sigma_rad=g.odometry_sigma_rad,
+        odometry_sigma_rad_per_rad=math.radians(g.odometry_sigma_deg_per_rad),
+        range_sigma_m=g.beacon_range_sigma_m,
+        bearing_sigma_rad=g.beacon_bearing_sigma_rad,
+        beacon_offset_m=config.beacon.offset_m,
+        scanner_x_m=config.robot.scanner_x_m,
+        global_min_sigma_m=g.global_min_sigma_m,
+        global_min_sigma_rad=g.global_min_sigma_rad,
+        gate_sigmas=g.gate_sigmas,
+        dominance_ratio=config.search.dominance_ratio,
+        peak_radius_m=config.search.peak_radius_m,
+        peak_radius_rad=math.radians(config.search.peak_radius_deg),
+    )
+
+
+def search_params(section: SearchConfig, workers: int = 0) -> SearchParams:
+    """The search parameters of the configuration's ``search`` section."""
+    return SearchParams(
+        angular_resolution_rad=section.angular_resolution_rad,
+        free_weight=section.free_weight,
+        occupied_level=section.occupied_level,
+        beta=section.beta,
+        peak_radius_m=section.peak_radius_m,
+        peak_radius_rad=math.radians(section.peak_radius_deg),
+        dominance_ratio=section.dominance_ratio,
+        workers=workers,
+    )
+
+
+def station_params(config: Config) -> StationParams:
+    """The station searches' parameters: β of station maps is ``search.station_beta``."""
+    search = search_params(config.search)
+    b = config.bands
+    return StationParams(
+        search=search,
+        station_search=replace(search, beta=config.search.station_beta),
+        grid=GridParams(**config.grid.model_dump()),
+        T_robot_scanner=T_robot_scanner(config),
+        ceiling_m=(b.ceiling.min_m, b.ceiling.max_m),
+        floor_m=(b.floor.min_m, b.floor.max_m),
+        free_min_observed=b.free_min_observed,
+        window_m=config.search.window_m,
+        max_window_m=config.search.max_window_m,
+    )
+
+
+def simulated_scanner(
+    config: Config,
+    rng: np.random.Generator,
+    *,
+    field_of_view_deg: int | None = None,
+    resolution_deg: float | None = None,
+) -> SimulatedScanner:
+    """A simulated LMS + mirror with a random motor-rate error and phase (seeded)."""
+    sim, scanner, m = config.simulation, config.scanner, config.mirror
+    nominal = m.period_s / m.gear_ratio
+    return SimulatedScanner(
+        mirror_geometry(config),
+        motor_period_s=nominal * (1.0 + rng.uniform(-1.0, 1.0) * sim.motor_rate_jitter),
+        arm_phase_time_s=float(rng.uniform(0.0, nominal)),
+        edge_on_turn=int(rng.integers(0, int(m.gear_ratio // 2))),
+        arm_width_rad=math.radians(m.arm_width_deg),
+        arm_drop_fraction=sim.arm_edge_drop_fraction,
+        field_of_view_deg=field_of_view_deg or scanner.field_of_view_deg,
+        resolution_deg=resolution_deg or scanner.angular_resolution_deg,
+        max_range_m=scanner.max_range_m,
+        min_range_m=scanner.min_range_m,
+        range_sigma_m=sim.range_sigma_m,
+        seed=int(rng.integers(0, 2**31)),
+    )
+
+
+_VARIANT_BY_COUNT = {101: (100, 1.0), 201: (100, 0.5), 401: (100, 0.25), 181: (180, 1.0),
+                     361: (180, 0.5)}  # fmt: skip
+
+
+def simulated_scan_source(
+    world: World,
+    pose: tuple[float, float, float],
+    config: Config,
+    seed: int = 0,
+    others: dict[str, tuple[float, float, float]] | None = None,
+) -> Callable[[float, int], tuple[np.ndarray, np.ndarray]]:
+    """Ranges and reflector flags of the scanner of a robot at ``pose`` (x_m, y_m, yaw_rad),
+    for the device emulator: ``source(t_s, count)`` simulates the scan measured at t_s with the
+    variant that has ``count`` values. Other robots (name → pose) stand in the world.
+    """
+    scene_world = world_with_robots(world, others or {}, robot_body(config)) if others else world
+    scene = RaycastScene(
+        build_mesh(scene_world, cylinder_segments=config.simulation.cylinder_segments)
+    )
+    T_map_scanner = scanner_pose_matrix(
+        *pose, config.robot.scanner_x_m, config.robot.scanner_height_m
+    )
+    rng = np.random.default_rng(seed)
+    scanners: dict[int, SimulatedScanner] = {}
+    mechanics = simulated_scanner(config, np.random.default_rng(seed))
+
+    def source(t_s: float, count: int) -> tuple[np.ndarray, np.ndarray]:
+        if count not in scanners:
+            fov, res = _VARIANT_BY_COUNT[count]
+            scanners[count] = replace(mechanics, field_of_view_deg=fov, resolution_deg=res)
+        scans = scanners[count].scan(scene, T_map_scanner, np.array([t_s]), rng)
+        return scans.ranges_m[0], scans.flags[0]
+
+    return source
+
+
+def driver_from_config(config: Config, port: str | None = None, **overrides: Any) -> Lms200:
+    """The LMS 200 driver set up as the configuration says (``port`` overrides serial.port)."""
+    s, scanner = config.serial, config.scanner
+    options: dict[str, Any] = {
+        "baud_rate": s.baud_rate,
+        "address": s.address,
+        "password": s.password,
+        "angle_deg": scanner.field_of_view_deg,
+        "resolution_deg": scanner.angular_resolution_deg,
+        "measuring_mode": scanner.measuring_mode,
+        "unit_mm": scanner.unit == "mm",
+        "permanent_baud": s.permanent_baud,
+        "ack_timeout_s": s.ack_timeout_s,
+        "reply_timeout_s": s.reply_timeout_s,
+        "config_write_timeout_s": s.config_write_timeout_s,
+        "stream_timeout_s": s.stream_timeout_s,
+        "nak_wait_s": s.nak_wait_s,
+        "baud_switch_wait_s": s.baud_switch_wait_s,
+        "retries": s.retries,
+    }
+    options.update(overrides)
+    return Lms200(port or s.port, **options)

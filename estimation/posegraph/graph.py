@@ -1,0 +1,612 @@
+"""The pose graph (DESIGN §5): events in, factors and initial values out.
+
+:class:`GraphBuilder` turns the event stream (``estimation.posegraph.events``) into factor specifications
+and initial values, one :class:`Increment` per event. The batch smoother collects them all; iSAM2
+is fed each increment as it comes — the same builder for both, so both solve the same problem.
+
+Variables are the robot poses ``T_map_robot`` (keys from ``estimation.posegraph.keys``). Factors:
+
+* ``prior`` — the gauge on the first reference pose (:class:`~estimation.posegraph.events.Start`);
+* ``odometry`` — ``BetweenFactorPose2`` between consecutive poses of one robot, with sigmas
+  growing with the distance and angle travelled;
+* ``mutual`` — one ``BetweenFactorPose2`` per mutual observation: the maximum-likelihood relative
+  pose of the two robots from the four raw beacon measurements (``estimation.posegraph.mutual``), with its
+  covariance, the Cramér–Rao bound. To first order this carries exactly the information of the raw
+  range/bearing factors, in one native factor without beacon variables (``factor_study`` measures
+  the alternatives);
+* ``global`` — a search result: a prior in the map frame, or a between-factor to the earlier
+  station whose map was matched; mean and covariance from the search PDF's peak, floored.
+
+In front of the graph every observation passes the gate: degenerate geometry, the s1/s2
+consistency check (paper §2.1) and, when the two robots were related by an earlier accepted
+observation, a χ² test against the relative pose predicted from it and the odometry since.
+
+Covariances of Pose2 factors are in GTSAM's tangent space (body frame, ``[v_x, v_y, ω]``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+from scipy.stats import chi2
+
+from estimation.errors import EstimationError
+from estimation.posegraph.events import Event, Localize, Move, Observe, Start
+from estimation.posegraph.keys import check_robot, key_label, pose_key, split_key
+from estimation.posegraph.mutual import check_observation, localize_mutual
+from estimation.posegraph.seed import seed_pose
+from estimation.posepdf import PosePdf
+from sensors.geometry import se2
+
+if TYPE_CHECKING:
+    import gtsam
+
+__all__ = [
+    "FactorKind",
+    "FactorSpec",
+    "GraphBuilder",
+    "GraphSettings",
+    "Increment",
+    "Rejection",
+    "check_constrained",
+    "floor_covariance",
+    "frame_to_body_covariance",
+    "mutual_between",
+    "odometry_covariance",
+    "to_gtsam_factor",
+    "to_gtsam_graph",
+    "to_gtsam_values",
+]
+
+FactorKind = Literal["prior", "odometry", "mutual", "global"]
+RobustKernel = Literal["none", "huber", "cauchy"]
+_KERNEL_WIDTH = math.sqrt(float(chi2.ppf(0.95, 3)))
+
+
+@dataclass(frozen=True)
+class GraphSettings:
+    """Explicit noise models and gates of the pose graph (SI units; defaults = configs/default).
+
+    ``prediction_gate_probability`` None switches the prediction gate off.
+    """
+
+    prior_sigma_m: float = 0.001
+    prior_sigma_rad: float = math.radians(0.01)
+    odometry_sigma_m: float = 0.01
+    odometry_sigma_per_m: float = 0.05
+    odometry_sigma_rad: float = math.radians(0.5)
+    odometry_sigma_rad_per_rad: float = math.radians(2.0)
+    range_sigma_m: float = 0.02
+    bearing_sigma_rad: float = math.radians(0.25)
+    beacon_offset_m: float = 0.25
+    scanner_x_m: float = 0.10
+    global_min_sigma_m: float = 0.02
+    global_min_sigma_rad: float = math.radians(0.3)
+    gate_sigmas: float = 3.0
+    prediction_gate_probability: float | None = 0.999
+    dominance_ratio: float = 2.0
+    peak_radius_m: float = 0.5
+    peak_radius_rad: float = math.radians(10.0)
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if value is None:
+                continue
+            positive_or_zero = name in ("odometry_sigma_per_m", "odometry_sigma_rad_per_rad")
+            if not math.isfinite(value) or value < 0 or (value == 0 and not positive_or_zero):
+                raise EstimationError(f"GraphSettings.{name} must be positive, got {value}")
+        p = self.prediction_gate_probability
+        if p is not None and not 0 < p < 1:
+            raise EstimationError(
+                f"GraphSettings.prediction_gate_probability must be in (0, 1): {p}"
+            )
+
+    @property
+    def prior_covariance(self) -> np.ndarray:
+        return np.diag([self.prior_sigma_m**2, self.prior_sigma_m**2, self.prior_sigma_rad**2])
+
+
+@dataclass(frozen=True, eq=False)
+class FactorSpec:
+    """One factor, independent of GTSAM: ``measurement`` is the prior pose (one key) or the
+    relative pose T_k0_k1 (two keys); ``covariance`` is in the measurement's tangent space."""
+
+    kind: FactorKind
+    keys: tuple[int, ...]
+    measurement: np.ndarray
+    covariance: np.ndarray
+    event: int
+
+    @property
+    def robust(self) -> bool:
+        """Mutual and global factors may be outliers; priors and odometry are known inliers."""
+        return self.kind in ("mutual", "global")
+
+    def describe(self) -> str:
+        return f"{self.kind} {'-'.join(key_label(k) for k in self.keys)} (event {self.event})"
+
+    def residual(self, poses: Mapping[int, np.ndarray]) -> np.ndarray:
+        """Residual (3,) at ``poses`` in GTSAM's Pose2 chart: ``Log(measurement⁻¹ ∘ predicted)``."""
+        predicted = (
+            poses[self.keys[0]]
+            if len(self.keys) == 1
+            else se2.between(poses[self.keys[0]], poses[self.keys[1]])
+        )
+        return se2.log(se2.between(self.measurement, predicted))
+
+    def mahalanobis2(self, poses: Mapping[int, np.ndarray]) -> float:
+        """Squared Mahalanobis norm of the residual (twice GTSAM's ``factor.error``)."""
+        r = self.residual(poses)
+        return float(r @ np.linalg.solve(self.covariance, r))
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """An event the gate kept out of the graph, and why; for a mutual observation, the poses it
+    joined and the relative pose it measured (None where the geometry gave none)."""
+
+    event: int
+    reason: str
+    keys: tuple[int, ...] = ()
+    measurement: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Increment:
+    """What one event adds: factors, initial values of new poses, or a rejection."""
+
+    event: int
+    factors: tuple[FactorSpec, ...] = ()
+    values: Mapping[int, np.ndarray] = field(default_factory=dict)
+    rejection: Rejection | None = None
+
+
+def odometry_covariance(
+    delta: np.ndarray,
+    sigma_m: float,
+    sigma_per_m: float,
+    sigma_rad: float,
+    sigma_rad_per_rad: float,
+) -> np.ndarray:
+    """Diagonal covariance of one odometry step: sigmas grow with distance and turn."""
+    dx, dy, dyaw = (float(v) for v in delta)
+    s_t = sigma_m + sigma_per_m * math.hypot(dx, dy)
+    s_r = sigma_rad + sigma_rad_per_rad * abs(float(se2.wrap_angle(dyaw)))
+    return np.diag([s_t**2, s_t**2, s_r**2])
+
+
+def frame_to_body_covariance(yaw_rad: float, covariance: np.ndarray) -> np.ndarray:
+    """A covariance of (x, y, yaw) in the parent frame, expressed in the pose's tangent space."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    J = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.asarray(J @ covariance @ J.T)
+
+
+def floor_covariance(
+    covariance: np.ndarray, min_sigma_m: float, min_sigma_rad: float
+) -> np.ndarray:
+    """Raise the diagonal to at least the floor variances (adds only: stays positive definite)."""
+    floor = np.array([min_sigma_m**2, min_sigma_m**2, min_sigma_rad**2])
+    return np.asarray(covariance + np.diag(np.maximum(floor - np.diag(covariance), 0.0)))
+
+
+def mutual_between(
+    pose_scanner: np.ndarray, covariance_scanner: np.ndarray, scanner_x_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """T_robotA_robotC and its tangent-space covariance from C's scanner pose in A's scanner frame
+    (covariance in A-frame x, y, yaw); the scanner sits ``scanner_x_m`` ahead of the robot origin.
+
+    ``T_rA_rC = T_r_s ∘ T_sA_sC ∘ T_s_r``; a right perturbation ξ of ``T_sA_sC`` becomes
+    ``Ad(T_r_s) ξ`` of ``T_rA_rC``.
+    """
+    T_r_s = np.array([scanner_x_m, 0.0, 0.0])
+    body = frame_to_body_covariance(float(pose_scanner[2]), covariance_scanner)
+    T = se2.compose(se2.compose(T_r_s, pose_scanner), se2.inverse(T_r_s))
+    Ad = se2.adjoint(T_r_s)
+    cov = Ad @ body @ Ad.T
+    return T, 0.5 * (cov + cov.T)
+
+
+def _inverse_with_covariance(T: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    Ad = se2.adjoint(T)
+    return se2.inverse(T), Ad @ cov @ Ad.T
+
+
+@dataclass
+class _Step:
+    previous: int
+    delta: np.ndarray
+    covariance: np.ndarray
+
+
+class GraphBuilder:
+    """Turns events into :class:`Increment` s; keeps what the gate and the seeds need.
+
+    State: known poses and their initial guesses, each robot's odometry steps, the last accepted
+    relative pose of every pair of robots, the search PDFs of the stations, the rejections.
+    """
+
+    def __init__(self, settings: GraphSettings | None = None) -> None:
+        self.settings = settings or GraphSettings()
+        self.factors: list[FactorSpec] = []
+        self.guesses: dict[int, np.ndarray] = {}
+        self.rejections: list[Rejection] = []
+        self.pdfs: dict[int, list[tuple[PosePdf, int | None]]] = {}
+        self._sources: dict[int, str] = {}
+        self._anchors: dict[str, int] = {}
+        self._seed_chi2 = float(chi2.ppf(0.999, 3))
+        self._latest: dict[str, int] = {}
+        self._steps: dict[str, dict[int, _Step]] = {}
+        self._fixes: dict[tuple[str, str], tuple[int, int, np.ndarray, np.ndarray]] = {}
+        self._events = 0
+        s = self.settings
+        self._gate_chi2 = (
+            float(chi2.ppf(s.prediction_gate_probability, 3))
+            if s.prediction_gate_probability is not None
+            else math.inf
+        )
+
+    # -- public ----------------------------------------------------------------------------
+
+    @property
+    def events(self) -> int:
+        """Events consumed so far."""
+        return self._events
+
+    def initial_values(self) -> dict[int, np.ndarray]:
+        """The current guess of every pose (batch initial values; seeds applied)."""
+        return {k: v.copy() for k, v in self.guesses.items()}
+
+    def add(self, event: Event) -> Increment:
+        """Consume one event; raises ``EstimationError`` when the stream is inconsistent."""
+        number = self._events
+        if isinstance(event, Start):
+            increment = self._start(event, number)
+        elif isinstance(event, Move):
+            increment = self._move(event, number)
+        elif isinstance(event, Observe):
+            increment = self._observe(event, number)
+        elif isinstance(event, Localize):
+            increment = self._localize(event, number)
+        else:
+            raise EstimationError(f"event {number}: unknown event type {type(event).__name__}")
+        self._events += 1
+        self.factors.extend(increment.factors)
+        if increment.rejection is not None:
+            self.rejections.append(increment.rejection)
+        return increment
+
+    def add_all(self, events: Iterable[Event]) -> list[Increment]:
+        return [self.add(e) for e in events]
+
+    # -- events ----------------------------------------------------------------------------
+
+    def _new_pose(self, key: int, guess: np.ndarray, source: str) -> dict[int, np.ndarray]:
+        self.guesses[key] = np.asarray(guess, dtype=float).copy()
+        self._sources[key] = source
+        robot, index = split_key(key)
+        self._latest[robot] = max(self._latest.get(robot, index), index)
+        if source != "move":
+            self._anchors[robot] = index
+        return {key: self.guesses[key].copy()}
+
+    def _refine_guess(
+        self, key: int, guess: np.ndarray, covariance: np.ndarray, source: str
+    ) -> None:
+        """Replace an odometry-only guess by one from an observation or a search, if the two
+        agree within the dead-reckoning uncertainty since the robot's last anchored pose (χ² at
+        0.999). A gross outlier, even one let into the graph, must not drag the initial values
+        of every pose after it."""
+        if self._sources[key] != "move":
+            return
+        robot, index = split_key(key)
+        anchor = self._anchors.get(robot)
+        motion = None if anchor is None else self._motion(robot, anchor, index)
+        if motion is None:
+            return
+        xi = se2.log(se2.between(self.guesses[key], guess))
+        if float(xi @ np.linalg.solve(motion[1] + covariance, xi)) > self._seed_chi2:
+            return
+        self.guesses[key] = np.asarray(guess, dtype=float).copy()
+        self._sources[key] = source
+        self._anchors[robot] = index
+
+    def _start(self, event: Start, number: int) -> Increment:
+        key = pose_key(event.robot, event.index)
+        pose = np.asarray(event.pose, dtype=float)
+        _finite(number, "Start.pose", pose)
+        values = {} if key in self.guesses else self._new_pose(key, pose, "start")
+        spec = FactorSpec("prior", (key,), pose, self.settings.prior_covariance, number)
+        return Increment(number, (spec,), values)
+
+    def _move(self, event: Move, number: int) -> Increment:
+        robot = check_robot(event.robot)
+        delta = np.asarray(event.delta, dtype=float)
+        _finite(number, "Move.delta", delta)
+        if robot not in self._latest:
+            raise EstimationError(
+                f"event {number}: robot {robot!r} moves but has no pose yet (its first pose comes "
+                "from a Start, Observe or Localize event)"
+            )
+        previous = self._latest[robot]
+        if event.index <= previous:
+            raise EstimationError(
+                f"event {number}: robot {robot!r} moves to pose {event.index}, not after its "
+                f"latest pose {previous}"
+            )
+        s = self.settings
+        cov = odometry_covariance(
+            delta, s.odometry_sigma_m, s.odometry_sigma_per_m, s.odometry_sigma_rad,
+            s.odometry_sigma_rad_per_rad,
+        )  # fmt: skip
+        prev_key, key = pose_key(robot, previous), pose_key(robot, event.index)
+        self._steps.setdefault(robot, {})[event.index] = _Step(previous, delta, cov)
+        values = {}
+        if key not in self.guesses:
+            values = self._new_pose(key, se2.compose(self.guesses[prev_key], delta), "move")
+        else:
+            self._latest[robot] = event.index
+        spec = FactorSpec("odometry", (prev_key, key), delta, cov, number)
+        return Increment(number, (spec,), values)
+
+    def _observe(self, event: Observe, number: int) -> Increment:
+        s = self.settings
+        (ra, ia), (rc, ic) = event.observer, event.observed
+        ka, kc = pose_key(ra, ia), pose_key(rc, ic)
+        if ra == rc:
+            raise EstimationError(f"event {number}: robot {ra!r} cannot observe itself")
+        z = (event.a_m, event.alpha_rad, event.b_m, event.beta_rad)
+        _finite(number, "Observe measurement", np.asarray(z, dtype=float))
+        if ka not in self.guesses and kc not in self.guesses:
+            raise EstimationError(
+                f"event {number}: neither {key_label(ka)} nor {key_label(kc)} is known; a mutual "
+                "observation must involve a pose already in the graph"
+            )
+        try:
+            check_observation(*z, s.beacon_offset_m)
+        except EstimationError as exc:
+            return self._reject(number, str(exc), (ka, kc))
+        fix = localize_mutual(
+            *z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad, s.gate_sigmas, "ml"
+        )
+        T, cov = mutual_between(fix.pose, fix.covariance, s.scanner_x_m)
+        if not fix.accepted:
+            return self._reject(
+                number,
+                f"s1/s2 gate: |s1 - s2| = {abs(fix.gap_m):.3f} m is {fix.gap_sigmas:.1f} sigma "
+                f"(limit {s.gate_sigmas:g})",
+                (ka, kc),
+                T,
+            )
+        predicted = self._predict(ra, ia, rc, ic)
+        if predicted is not None:
+            T_pred, cov_pred = predicted
+            xi = se2.log(se2.between(T_pred, T))
+            d2 = float(xi @ np.linalg.solve(cov_pred + cov, xi))
+            if d2 > self._gate_chi2:
+                return self._reject(
+                    number,
+                    f"prediction gate: Mahalanobis² {d2:.1f} against the pose predicted from "
+                    f"the last fix and odometry (limit {self._gate_chi2:.1f})",
+                    (ka, kc),
+                    T,
+                )
+        values: dict[int, np.ndarray] = {}
+        if kc not in self.guesses:
+            values = self._new_pose(kc, se2.compose(self.guesses[ka], T), "observe")
+        elif ka not in self.guesses:
+            values = self._new_pose(ka, se2.compose(self.guesses[kc], se2.inverse(T)), "observe")
+        elif self._sources[kc] == "move" and self._sources[ka] != "move":
+            self._refine_guess(kc, se2.compose(self.guesses[ka], T), cov, "observe")
+        elif self._sources[ka] == "move" and self._sources[kc] != "move":
+            T_inv, cov_inv = _inverse_with_covariance(T, cov)
+            self._refine_guess(ka, se2.compose(self.guesses[kc], T_inv), cov_inv, "observe")
+        self._remember_fix(ra, ia, rc, ic, T, cov)
+        return Increment(number, (FactorSpec("mutual", (ka, kc), T, cov, number),), values)
+
+    def _localize(self, event: Localize, number: int) -> Increment:
+        s = self.settings
+        key = pose_key(event.robot, event.index)
+        pdf = event.pdf
+        if not isinstance(pdf, PosePdf):
+            raise EstimationError(f"event {number}: Localize.pdf must be a PosePdf")
+        reference = None if event.reference is None else pose_key(*event.reference)
+        if reference is not None and reference not in self.guesses:
+            raise EstimationError(
+                f"event {number}: reference station {key_label(reference)} is not in the graph"
+            )
+        if reference == key:
+            raise EstimationError(f"event {number}: a station cannot be localized against itself")
+        mean = pdf.best_pose() if event.pose is None else np.asarray(event.pose, dtype=float)
+        if mean.shape != (3,) or not np.isfinite(mean).all():
+            raise EstimationError(f"event {number}: Localize.pose must be 3 finite numbers")
+        radius_m, radius_rad = event.peak_radius or (s.peak_radius_m, s.peak_radius_rad)
+        cov_frame = floor_covariance(
+            pdf.covariance(radius_m, radius_rad),
+            s.global_min_sigma_m,
+            s.global_min_sigma_rad,
+        )
+        cov = frame_to_body_covariance(float(mean[2]), cov_frame)
+        base = np.zeros(3) if reference is None else self.guesses[reference]
+        values: dict[int, np.ndarray] = {}
+        fallback = self.guesses.get(key)
+        fallback_in_ref = None if fallback is None else se2.between(base, fallback)
+        seeded, from_search = seed_pose(
+            pdf, fallback_in_ref, s.dominance_ratio, s.peak_radius_m, s.peak_radius_rad
+        )
+        if from_search and event.pose is not None:
+            seeded = mean.copy()
+        if key not in self.guesses:
+            if seeded is None:
+                return self._reject(
+                    number,
+                    f"{key_label(key)} is new and its search peak is not dominant (ratio "
+                    f"{pdf.peak_ratio(s.peak_radius_m, s.peak_radius_rad):.2f} < "
+                    f"{s.dominance_ratio:g}): nothing to seed it with",
+                )
+            values = self._new_pose(key, se2.compose(base, seeded), "localize")
+        elif seeded is not None and from_search:
+            self._refine_guess(key, se2.compose(base, seeded), cov, "localize")
+        self.pdfs.setdefault(key, []).append((pdf, reference))
+        keys = (key,) if reference is None else (reference, key)
+        return Increment(number, (FactorSpec("global", keys, mean, cov, number),), values)
+
+    # -- gate helpers ----------------------------------------------------------------------
+
+    def _reject(
+        self,
+        number: int,
+        reason: str,
+        keys: tuple[int, ...] = (),
+        measurement: np.ndarray | None = None,
+    ) -> Increment:
+        return Increment(number, rejection=Rejection(number, reason, keys, measurement))
+
+    def _motion(self, robot: str, start: int, end: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """T_start_end of one robot by its odometry, with covariance; None if not chained."""
+        if start == end:
+            return np.zeros(3), np.zeros((3, 3))
+        lo, hi = min(start, end), max(start, end)
+        steps = self._steps.get(robot, {})
+        chain: list[_Step] = []
+        index = hi
+        while index != lo:
+            step = steps.get(index)
+            if step is None or step.previous < lo:
+                return None
+            chain.append(step)
+            index = step.previous
+        T, cov = np.zeros(3), np.zeros((3, 3))
+        for step in reversed(chain):
+            T, cov = se2.propagate_compose(T, cov, step.delta, step.covariance)
+        return (T, cov) if start < end else _inverse_with_covariance(T, cov)
+
+    def _remember_fix(
+        self, ra: str, ia: int, rc: str, ic: int, T: np.ndarray, cov: np.ndarray
+    ) -> None:
+        if ra < rc:
+            self._fixes[(ra, rc)] = (ia, ic, T, cov)
+        else:
+            T_inv, cov_inv = _inverse_with_covariance(T, cov)
+            self._fixes[(rc, ra)] = (ic, ia, T_inv, cov_inv)
+
+    def _predict(self, ra: str, ia: int, rc: str, ic: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """T_A_C predicted from the last accepted fix between the two robots and odometry."""
+        if ra < rc:
+            last = self._fixes.get((ra, rc))
+            if last is None:
+                return None
+            ja, jc, T, cov = last
+        else:
+            last = self._fixes.get((rc, ra))
+            if last is None:
+                return None
+            jc, ja, T_ca, cov_ca = last
+            T, cov = _inverse_with_covariance(T_ca, cov_ca)
+        motion_a = self._motion(ra, ja, ia)
+        motion_c = self._motion(rc, jc, ic)
+        if motion_a is None or motion_c is None:
+            return None
+        T_ia_ja, cov_ia_ja = _inverse_with_covariance(*motion_a)
+        T1, cov1 = se2.propagate_compose(T_ia_ja, cov_ia_ja, T, cov)
+        return se2.propagate_compose(T1, cov1, *motion_c)
+
+
+def _finite(number: int, what: str, values: np.ndarray) -> None:
+    if values.shape != (3,) and values.shape != (4,):
+        raise EstimationError(f"event {number}: {what} has shape {values.shape}")
+    if not np.isfinite(values).all():
+        raise EstimationError(f"event {number}: {what} holds NaN or inf: {values.tolist()}")
+
+
+# -- structure checks ------------------------------------------------------------------------
+
+
+def check_constrained(factors: Sequence[FactorSpec], keys: Iterable[int]) -> None:
+    """Raise ``EstimationError`` unless every pose is tied, through factors, to a prior.
+
+    A robot whose poses are linked only to each other (odometry, no mutual observation or
+    global localization) floats freely: the problem has no unique solution.
+    """
+    keys = list(keys)
+    parent = {k: k for k in keys}
+
+    def find(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    anchored: set[int] = set()
+    for spec in factors:
+        for k in spec.keys:
+            if k not in parent:
+                raise EstimationError(f"{spec.describe()} refers to {key_label(k)}, not in values")
+        if len(spec.keys) == 1:
+            anchored.add(spec.keys[0])
+        else:
+            a, b = find(spec.keys[0]), find(spec.keys[1])
+            if a != b:
+                parent[a] = b
+    roots = {find(k) for k in anchored}
+    loose: dict[str, list[int]] = {}
+    for k in keys:
+        if find(k) not in roots:
+            robot, index = split_key(k)
+            loose.setdefault(robot, []).append(index)
+    if loose:
+        parts = [
+            f"robot {r} ({len(ix)} poses, {r}{min(ix)}…{r}{max(ix)})"
+            for r, ix in sorted(loose.items())
+        ]
+        raise EstimationError(
+            "unconstrained: " + ", ".join(parts) + " not connected to any prior; add a Start, a "
+            "mutual observation or a global localization that ties them to the map"
+        )
+
+
+# -- GTSAM -----------------------------------------------------------------------------------
+
+
+def to_gtsam_factor(spec: FactorSpec, kernel: RobustKernel = "none") -> gtsam.NonlinearFactor:
+    """The native GTSAM factor of a spec; ``kernel`` wraps robust (mutual/global) factors."""
+    import gtsam
+
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(spec.covariance)
+    if spec.robust and kernel != "none":
+        # The kernels act on the norm of the whitened 3-vector: leave its 95 % quantile alone.
+        k = _KERNEL_WIDTH
+        estimator = (
+            gtsam.noiseModel.mEstimator.Huber.Create(k)
+            if kernel == "huber"
+            else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
+        )
+        noise = gtsam.noiseModel.Robust.Create(estimator, noise)
+    pose = gtsam.Pose2(*(float(v) for v in spec.measurement))
+    if len(spec.keys) == 1:
+        return gtsam.PriorFactorPose2(spec.keys[0], pose, noise)
+    return gtsam.BetweenFactorPose2(spec.keys[0], spec.keys[1], pose, noise)
+
+
+def to_gtsam_graph(
+    factors: Iterable[FactorSpec], kernel: RobustKernel = "none"
+) -> gtsam.NonlinearFactorGraph:
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    for spec in factors:
+        graph.add(to_gtsam_factor(spec, kernel))
+    return graph
+
+
+def to_gtsam_values(poses: Mapping[int, np.ndarray]) -> gtsam.Values:
+    import gtsam
+
+    values = gtsam.Values()
+    for key, (x, y, yaw) in poses.items():
+        values.insert(key, gtsam.Pose2(float(x), float(y), float(yaw)))
+    return values

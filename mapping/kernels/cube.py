@@ -1,0 +1,176 @@
+"""The scan's "seen" cube: a Morton-ordered bitmap that de-duplicates updates near the sensor.
+
+Within one scan each cell is updated once. Cells within ±CUBE_HALF cells of the sensor (per
+axis) are tracked in a bitmap of the cube around it, in Morton order (an 8 × 8 × 8 corner of
+the cube shares a cache line), where a ray steps from cell to cell with a few bit operations
+and no lookup; most of a scan's traversal happens there (``mapping.kernels.traversal``). Cells
+outside use the per-block bits. ``apply_fresh`` writes the cube cells a batch of rays newly
+reached into the blocks; ``reset_cube`` clears the bitmap when the scan is done.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from mapping.kernels.blocks import (
+    EMPTY_KEY,
+    find_or_add_block,
+    pack_block,
+    probe,
+    split,
+)
+
+CUBE_BITS = 9
+CUBE_SIDE = 1 << CUBE_BITS
+CUBE_HALF = CUBE_SIDE // 2
+#: The bitmap's bytes, then one byte per 4 kB chunk of it: set when the scan wrote to the chunk,
+#: so that clearing the bitmap after a scan touches only those chunks.
+CUBE_BYTES = 1 << (3 * CUBE_BITS - 3)
+CUBE_CHUNK_BITS = 12
+CUBE_ARRAY_BYTES = CUBE_BYTES + (CUBE_BYTES >> CUBE_CHUNK_BITS)
+MZ = 0x01249249  # Morton bits of z (bit 3i), y (3i + 1) and x (3i + 2) for 9-bit coordinates
+MY = MZ << 1
+MX = MZ << 2
+
+
+@njit(cache=True, inline="always")
+def _dilate(v: int) -> int:
+    """Spread the bits of a coordinate below 1024 to every third bit."""
+    v &= 0x3FF
+    v = (v ^ (v << 16)) & 0xFF0000FF
+    v = (v ^ (v << 8)) & 0x0300F00F
+    v = (v ^ (v << 4)) & 0x030C30C3
+    return (v ^ (v << 2)) & 0x09249249
+
+
+@njit(cache=True, inline="always")
+def _compact(v: int) -> int:
+    """Inverse of ``_dilate`` on bits 0, 3, 6, …"""
+    v &= 0x09249249
+    v = (v ^ (v >> 2)) & 0x030C30C3
+    v = (v ^ (v >> 4)) & 0x0300F00F
+    v = (v ^ (v >> 8)) & 0xFF0000FF
+    return (v ^ (v >> 16)) & 0x3FF
+
+
+@njit(cache=True, inline="always")
+def morton(x: int, y: int, z: int) -> int:
+    return (_dilate(x) << 2) | (_dilate(y) << 1) | _dilate(z)
+
+
+@njit(cache=True)
+def apply_fresh(
+    fresh: np.ndarray,
+    n_fresh: int,
+    corner: np.ndarray,
+    cube: np.ndarray,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    block_coords: np.ndarray,
+    count: np.ndarray,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    block_scan: np.ndarray,
+    updates: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+    lg: int,
+    delta: float,
+    l_min: float,
+    l_max: float,
+) -> int:
+    """Update the cube cells ``fresh[:n_fresh]`` (Morton indices, marked in the cube).
+
+    Returns ``n_fresh``, or k < n_fresh when the pool ran out at ``fresh[k]``: cells k… are
+    then cleared in the cube again, so that tracing their rays again updates them.
+    """
+    blk = -1
+    stop = n_fresh
+    if lg >= 0:
+        # Power-of-two blocks and a block-aligned cube: a cell's Morton code is its block's
+        # Morton code (relative to the cube corner's block) followed by its in-block offset.
+        s3 = 3 * lg
+        low = (1 << s3) - 1
+        cbx = corner[0] >> lg
+        cby = corner[1] >> lg
+        cbz = corner[2] >> lg
+        last_hi = -1
+        for k in range(n_fresh):
+            m = fresh[k]
+            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
+            hi = m >> s3
+            if hi != last_hi:
+                bx = _compact(hi >> 2) + cbx
+                by = _compact(hi >> 1) + cby
+                bz = _compact(hi) + cbz
+                blk = probe(table_keys, table_vals, shift, pack_block(bx, by, bz))
+                if blk < 0:
+                    blk = find_or_add_block(
+                        table_keys,
+                        table_vals,
+                        shift,
+                        block_coords,
+                        count,
+                        logodds,
+                        known,
+                        block_scan,
+                        bx,
+                        by,
+                        bz,
+                    )
+                if blk < 0:
+                    stop = k
+                    break
+                last_hi = hi
+            flat = m & low
+            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+    else:
+        last = EMPTY_KEY
+        for k in range(n_fresh):
+            m = fresh[k]
+            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
+            bx, lx = split(_compact(m >> 2) + corner[0], bs)
+            by, ly = split(_compact(m >> 1) + corner[1], bs)
+            bz, lz = split(_compact(m) + corner[2], bs)
+            key = pack_block(bx, by, bz)
+            if key != last:
+                blk = probe(table_keys, table_vals, shift, key)
+                if blk < 0:
+                    blk = find_or_add_block(
+                        table_keys,
+                        table_vals,
+                        shift,
+                        block_coords,
+                        count,
+                        logodds,
+                        known,
+                        block_scan,
+                        bx,
+                        by,
+                        bz,
+                    )
+                if blk < 0:
+                    stop = k
+                    break
+                last = key
+            flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
+            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+    updates[0] += stop
+    for k in range(stop, n_fresh):
+        m = fresh[k]
+        cube[m >> 3] &= np.uint8(~(1 << (m & 7)) & 0xFF)
+    return stop
+
+
+@njit(cache=True)
+def reset_cube(cube: np.ndarray) -> None:
+    """Clear the chunks of the bitmap that a scan wrote to, and their marks."""
+    chunk = 1 << CUBE_CHUNK_BITS
+    for c in range(CUBE_BYTES >> CUBE_CHUNK_BITS):
+        if cube[CUBE_BYTES + c]:
+            cube[c * chunk : (c + 1) * chunk] = 0
+            cube[CUBE_BYTES + c] = 0

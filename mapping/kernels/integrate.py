@@ -1,0 +1,138 @@
+"""Scan integration: one scan's end points and rays into the grid, resumable.
+
+End cells are updated first (occupied), then the free rays to them, then the free rays of
+no-return beams (``PHASE_*``); the traversal is ``mapping.kernels.traversal``. When the block
+pool is full the kernel returns the phase and index to resume from; the caller grows the pool
+and calls again.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from mapping.kernels.cube import CUBE_HALF, reset_cube
+from mapping.kernels.traversal import trace_rays, visit_cells
+
+#: Kernel phases: occupied end points, free rays to end points, free rays of no-return beams.
+PHASE_HITS, PHASE_RAYS, PHASE_FREE, PHASE_DONE = 0, 1, 2, 3
+
+
+@njit(cache=True)
+def integrate(
+    hits: np.ndarray,
+    free_ends: np.ndarray,
+    sensor: np.ndarray,
+    grid_origin: np.ndarray,
+    inv_res: float,
+    cube: np.ndarray,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    block_coords: np.ndarray,
+    count: np.ndarray,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    flags: np.ndarray,
+    block_scan: np.ndarray,
+    updates: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+    lg: int,
+    scan_id: int,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+    phase: int,
+    start: int,
+) -> tuple[int, int]:
+    """Integrate one scan; returns (phase, index) to resume from, phase 3 when done.
+
+    ``hits`` (N, 3): end points of returns; ``free_ends`` (M, 3): where no-return beams stop
+    giving free evidence; ``sensor`` (3,): the sensor origin — all in the grid's frame.
+    ``cube`` (CUBE_ARRAY_BYTES,) uint8: the scan's bitmap around the sensor, all zeros when the
+    scan starts, kept between calls of the same scan and cleared when it is done. End cells are
+    updated first, so a cell that is an end point anywhere in the scan is occupied for the whole
+    scan; every cell is updated at most once per scan. ``lg`` = log2(bs) when bs is a power of
+    two, else −1.
+    """
+    pending = np.zeros((2, 4097), dtype=np.int64)
+    o = np.empty(3, dtype=np.float64)
+    corner = np.empty(3, dtype=np.int64)
+    for axis in range(3):
+        o[axis] = (sensor[axis] - grid_origin[axis]) * inv_res
+        # The cube is aligned to blocks when they are powers of two (see ``cube.apply_fresh``).
+        cell = math.floor(o[axis])
+        corner[axis] = (cell >> lg << lg if lg >= 0 else cell) - CUBE_HALF
+    if phase == PHASE_HITS:
+        cells = np.empty((len(hits), 3), dtype=np.int64)
+        for n in range(len(hits)):
+            for axis in range(3):
+                cells[n, axis] = math.floor((hits[n, axis] - grid_origin[axis]) * inv_res)
+        stop = visit_cells(
+            cells,
+            start,
+            corner,
+            cube,
+            table_keys,
+            table_vals,
+            shift,
+            block_coords,
+            count,
+            logodds,
+            known,
+            flags,
+            block_scan,
+            pending,
+            updates,
+            lut,
+            bs,
+            lg,
+            scan_id,
+            l_hit,
+            l_min,
+            l_max,
+        )
+        if stop < len(hits):
+            return PHASE_HITS, stop
+        phase = PHASE_RAYS
+        start = 0
+    for current, ends in ((PHASE_RAYS, hits), (PHASE_FREE, free_ends)):
+        if phase != current:
+            continue
+        stop = trace_rays(
+            ends,
+            start,
+            o,
+            corner,
+            grid_origin,
+            inv_res,
+            cube,
+            table_keys,
+            table_vals,
+            shift,
+            block_coords,
+            count,
+            logodds,
+            known,
+            flags,
+            block_scan,
+            pending,
+            updates,
+            lut,
+            bs,
+            lg,
+            scan_id,
+            l_miss,
+            l_min,
+            l_max,
+        )
+        if stop < len(ends):
+            return current, stop
+        phase = current + 1
+        start = 0
+    reset_cube(cube)
+    return PHASE_DONE, 0

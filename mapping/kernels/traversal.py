@@ -1,0 +1,415 @@
+"""Voxel traversal of rays through the grid, updating each cell once per scan.
+
+``trace_rays`` walks rays from the sensor (Amanatides–Woo), in the scan's cube
+(``mapping.kernels.cube``) when they stay in it; ``visit_cells`` is the general per-cell path
+(end points and rays that leave the cube), de-duplicated by the per-block bits. ``ray_cells``
+lists the cells of one segment, without storage.
+
+Per-scan de-duplication outside the cube uses one bit per cell (``flags``, (capacity, bs³ / 8)
+uint8), valid for the scan whose id is in ``block_scan`` (capacity,): a block's bits are cleared
+lazily the first time the scan reaches it. The bits are small enough to stay in cache, so a ray
+costs little in cells that other rays of the scan have already updated.
+
+A cell is flagged when updated and a flagged cell is skipped for the rest of the scan, so
+resuming after the pool ran out of blocks (even mid-ray) is exact.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from mapping.kernels.blocks import EMPTY_KEY, find_or_add_block, locate, pack_block, probe
+from mapping.kernels.cube import (
+    CUBE_BYTES,
+    CUBE_CHUNK_BITS,
+    CUBE_SIDE,
+    MX,
+    MY,
+    MZ,
+    apply_fresh,
+    morton,
+)
+
+
+@njit(cache=True)
+def _flush(
+    logodds: np.ndarray,
+    known: np.ndarray,
+    pending: np.ndarray,
+    updates: np.ndarray,
+    delta: float,
+    l_min: float,
+    l_max: float,
+) -> None:
+    """Apply ``delta`` (clamped) to every queued cell, mark it known; empty the queue."""
+    count = pending[0, 0]
+    for n in range(1, count + 1):
+        blk = pending[0, n]
+        flat = pending[1, n]
+        logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+        known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+    updates[0] += count
+    pending[0, 0] = 0
+
+
+@njit(cache=True)
+def visit_cells(
+    cells: np.ndarray,
+    start: int,
+    corner: np.ndarray,
+    cube: np.ndarray,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    block_coords: np.ndarray,
+    count: np.ndarray,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    flags: np.ndarray,
+    block_scan: np.ndarray,
+    pending: np.ndarray,
+    updates: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+    lg: int,
+    scan_id: int,
+    delta: float,
+    l_min: float,
+    l_max: float,
+) -> int:
+    """Update each cell of (K, 3) ``cells`` (from ``start``) unless this scan has seen it.
+
+    The general path, for end points and for the rare rays that leave the cube. Returns K, or
+    the index of the cell where the pool ran out of blocks (that cell is left unseen).
+    """
+    last = EMPTY_KEY
+    blk = -1
+    stop = len(cells)
+    q = pending.shape[1] - 1
+    for c in range(start, len(cells)):
+        ix = cells[c, 0]
+        iy = cells[c, 1]
+        iz = cells[c, 2]
+        cx = ix - corner[0]
+        cy = iy - corner[1]
+        cz = iz - corner[2]
+        in_cube = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
+        m = 0
+        if in_cube:
+            m = morton(cx, cy, cz)
+            seen = np.int64(cube[m >> 3])
+            if seen & (1 << (m & 7)):
+                continue
+            cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
+            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
+        bx, lx = locate(ix, bs, lg)
+        by, ly = locate(iy, bs, lg)
+        bz, lz = locate(iz, bs, lg)
+        key = pack_block(bx, by, bz)
+        if key != last:
+            blk = probe(table_keys, table_vals, shift, key)
+            if blk < 0:
+                blk = find_or_add_block(
+                    table_keys,
+                    table_vals,
+                    shift,
+                    block_coords,
+                    count,
+                    logodds,
+                    known,
+                    block_scan,
+                    bx,
+                    by,
+                    bz,
+                )
+            if blk < 0:
+                if in_cube:
+                    cube[m >> 3] = np.uint8(np.int64(cube[m >> 3]) & ~(1 << (m & 7)))
+                stop = c
+                break
+            if block_scan[blk] != scan_id:
+                block_scan[blk] = scan_id
+                flags[blk, :] = 0
+            last = key
+        flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
+        if not in_cube:
+            seen = np.int64(flags[blk, flat >> 3])
+            if seen & (1 << (flat & 7)):
+                continue
+            flags[blk, flat >> 3] = np.uint8(seen | (1 << (flat & 7)))
+        n = pending[0, 0] + 1
+        pending[0, n] = blk
+        pending[1, n] = flat
+        pending[0, 0] = n
+        if n == q:
+            _flush(logodds, known, pending, updates, delta, l_min, l_max)
+    _flush(logodds, known, pending, updates, delta, l_min, l_max)
+    return stop
+
+
+@njit(cache=True)
+def trace_rays(
+    ends: np.ndarray,
+    start: int,
+    o: np.ndarray,
+    corner: np.ndarray,
+    grid_origin: np.ndarray,
+    inv_res: float,
+    cube: np.ndarray,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    block_coords: np.ndarray,
+    count: np.ndarray,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    flags: np.ndarray,
+    block_scan: np.ndarray,
+    pending: np.ndarray,
+    updates: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+    lg: int,
+    scan_id: int,
+    delta: float,
+    l_min: float,
+    l_max: float,
+) -> int:
+    """Free evidence on every cell from the sensor's cell ``o`` (cell units) up to, not
+    including, each end's cell. Returns the ray to resume from when the pool ran out of blocks,
+    or ``len(ends)`` when every ray is done.
+
+    Amanatides–Woo traversal, with the number of steps per axis fixed in advance by the two end
+    cells, so the walk ends exactly in the end cell whatever the rounding. Ties (a ray through
+    an edge or corner) step z before y before x, as OctoMap's comparisons do. Rays within
+    the cube step through its Morton-ordered bitmap and collect the cells not yet seen in
+    ``fresh``, which is applied in batches.
+    """
+    inf = math.inf
+    ox, oy, oz = o[0], o[1], o[2]
+    ix0 = math.floor(ox)
+    iy0 = math.floor(oy)
+    iz0 = math.floor(oz)
+    m0 = morton(ix0 - corner[0], iy0 - corner[1], iz0 - corner[2])
+    n_cap = 16384
+    fresh = np.empty(n_cap, dtype=np.int64)
+    n_fresh = 0
+    batch_start = start
+    e = np.empty(3, dtype=np.float64)
+    for n in range(start, len(ends)):
+        ex = (ends[n, 0] - grid_origin[0]) * inv_res
+        ey = (ends[n, 1] - grid_origin[1]) * inv_res
+        ez = (ends[n, 2] - grid_origin[2]) * inv_res
+        jx = math.floor(ex)
+        jy = math.floor(ey)
+        jz = math.floor(ez)
+        nx = abs(jx - ix0)
+        ny = abs(jy - iy0)
+        nz = abs(jz - iz0)
+        total = nx + ny + nz
+        if total == 0:
+            continue
+        cx = jx - corner[0]
+        cy = jy - corner[1]
+        cz = jz - corner[2]
+        inside = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
+        if n_fresh > n_cap - 3 * CUBE_SIDE or not inside:
+            done = apply_fresh(
+                fresh,
+                n_fresh,
+                corner,
+                cube,
+                table_keys,
+                table_vals,
+                shift,
+                block_coords,
+                count,
+                logodds,
+                known,
+                block_scan,
+                updates,
+                lut,
+                bs,
+                lg,
+                delta,
+                l_min,
+                l_max,
+            )
+            if done < n_fresh:
+                return batch_start
+            n_fresh = 0
+            batch_start = n
+        if not inside:
+            e[0] = ex
+            e[1] = ey
+            e[2] = ez
+            cells = ray_cells(o, e, False)
+            done = visit_cells(
+                cells,
+                0,
+                corner,
+                cube,
+                table_keys,
+                table_vals,
+                shift,
+                block_coords,
+                count,
+                logodds,
+                known,
+                flags,
+                block_scan,
+                pending,
+                updates,
+                lut,
+                bs,
+                lg,
+                scan_id,
+                delta,
+                l_min,
+                l_max,
+            )
+            if done < len(cells):
+                return n
+            batch_start = n + 1
+            continue
+        sx = 1 if jx > ix0 else -1
+        sy = 1 if jy > iy0 else -1
+        sz = 1 if jz > iz0 else -1
+        # Dilated-integer increments: +1 is the axis's lowest bit, −1 all of its bits.
+        incx = 4 if sx > 0 else MX
+        incy = 2 if sy > 0 else MY
+        incz = 1 if sz > 0 else MZ
+        tmx = inf
+        tmy = inf
+        tmz = inf
+        tdx = 0.0
+        tdy = 0.0
+        tdz = 0.0
+        if nx > 0:
+            tdx = 1.0 / abs(ex - ox)
+            tmx = ((ix0 + 1 if sx > 0 else ix0) - ox) / (ex - ox)
+        if ny > 0:
+            tdy = 1.0 / abs(ey - oy)
+            tmy = ((iy0 + 1 if sy > 0 else iy0) - oy) / (ey - oy)
+        if nz > 0:
+            tdz = 1.0 / abs(ez - oz)
+            tmz = ((iz0 + 1 if sz > 0 else iz0) - oz) / (ez - oz)
+        m = m0
+        seen = np.int64(cube[m >> 3])
+        if not seen & (1 << (m & 7)):
+            cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
+            fresh[n_fresh] = m
+            n_fresh += 1
+        for _ in range(total - 1):
+            if tmx < tmy:
+                if tmx < tmz:
+                    nx -= 1
+                    tmx = tmx + tdx if nx > 0 else inf
+                    m = (((m | ~MX) + incx) & MX) | (m & ~MX)
+                else:
+                    nz -= 1
+                    tmz = tmz + tdz if nz > 0 else inf
+                    m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
+            elif tmy < tmz:
+                ny -= 1
+                tmy = tmy + tdy if ny > 0 else inf
+                m = (((m | ~MY) + incy) & MY) | (m & ~MY)
+            else:
+                nz -= 1
+                tmz = tmz + tdz if nz > 0 else inf
+                m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
+            byte = m >> 3
+            seen = np.int64(cube[byte])
+            bit = 1 << (m & 7)
+            if not seen & bit:
+                cube[byte] = np.uint8(seen | bit)
+                fresh[n_fresh] = m
+                n_fresh += 1
+    done = apply_fresh(
+        fresh,
+        n_fresh,
+        corner,
+        cube,
+        table_keys,
+        table_vals,
+        shift,
+        block_coords,
+        count,
+        logodds,
+        known,
+        block_scan,
+        updates,
+        lut,
+        bs,
+        lg,
+        delta,
+        l_min,
+        l_max,
+    )
+    if done < n_fresh:
+        return batch_start
+    return len(ends)
+
+
+@njit(cache=True)
+def ray_cells(start: np.ndarray, end: np.ndarray, include_end: bool) -> np.ndarray:
+    """(K, 3) int64 cells a segment visits, in order (both ends in cell units).
+
+    The same traversal as the integration kernel, without storage: for tests and for callers
+    that need the cells themselves.
+    """
+    ix = math.floor(start[0])
+    iy = math.floor(start[1])
+    iz = math.floor(start[2])
+    jx = math.floor(end[0])
+    jy = math.floor(end[1])
+    jz = math.floor(end[2])
+    nx = abs(jx - ix)
+    ny = abs(jy - iy)
+    nz = abs(jz - iz)
+    total = nx + ny + nz
+    out = np.empty((total + 1, 3), dtype=np.int64)
+    out[0, 0] = ix
+    out[0, 1] = iy
+    out[0, 2] = iz
+    inf = math.inf
+    sx = 1 if jx > ix else -1
+    sy = 1 if jy > iy else -1
+    sz = 1 if jz > iz else -1
+    tmx = inf
+    tmy = inf
+    tmz = inf
+    tdx = 0.0
+    tdy = 0.0
+    tdz = 0.0
+    if nx > 0:
+        tdx = 1.0 / abs(end[0] - start[0])
+        tmx = ((ix + 1 if sx > 0 else ix) - start[0]) / (end[0] - start[0])
+    if ny > 0:
+        tdy = 1.0 / abs(end[1] - start[1])
+        tmy = ((iy + 1 if sy > 0 else iy) - start[1]) / (end[1] - start[1])
+    if nz > 0:
+        tdz = 1.0 / abs(end[2] - start[2])
+        tmz = ((iz + 1 if sz > 0 else iz) - start[2]) / (end[2] - start[2])
+    for s in range(1, total + 1):
+        # Ties: z before y before x (OctoMap's comparisons).
+        axis = (0 if tmx < tmz else 2) if tmx < tmy else (1 if tmy < tmz else 2)
+        if axis == 0:
+            ix += sx
+            nx -= 1
+            tmx = tmx + tdx if nx > 0 else inf
+        elif axis == 1:
+            iy += sy
+            ny -= 1
+            tmy = tmy + tdy if ny > 0 else inf
+        else:
+            iz += sz
+            nz -= 1
+            tmz = tmz + tdz if nz > 0 else inf
+        out[s, 0] = ix
+        out[s, 1] = iy
+        out[s, 2] = iz
+    return out if include_end else out[:total]

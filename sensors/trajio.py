@@ -1,0 +1,287 @@
+"""Trajectory and pose-graph files: TUM, g2o (2D), CARMEN logs and SLAM-benchmark relations.
+
+Planar poses are (N, 3) arrays ``x_m, y_m, yaw_rad``. Readers check every line and raise
+``TrajectoryError`` naming the file, the line number and what is wrong; writers go through
+atomic writes, so a crash never leaves half a file. Nothing here imports gtsam.
+"""
+
+from __future__ import annotations
+
+import gzip
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sensors.atomic import write_text_atomic
+from sensors.errors import TrajectoryError
+from sensors.geometry.se2 import wrap_angle
+
+__all__ = [
+    "G2oGraph",
+    "read_carmen_odometry",
+    "read_g2o",
+    "read_relations",
+    "read_tum",
+    "write_g2o",
+    "write_tum",
+]
+
+
+def _lines(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of the non-blank, non-comment lines of a text or .gz file."""
+    opener = gzip.open if path.suffix == ".gz" else open
+    try:
+        with opener(path, "rt", encoding="utf-8") as handle:
+            for number, line in enumerate(handle, start=1):
+                fields = line.split()
+                if fields and not fields[0].startswith("#"):
+                    yield number, fields
+    except (UnicodeDecodeError, gzip.BadGzipFile, EOFError) as exc:
+        raise TrajectoryError(f"{path}: not a readable text file ({exc})") from exc
+
+
+def _floats(path: Path, number: int, fields: list[str], what: str) -> list[float]:
+    try:
+        values = [float(f) for f in fields]
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}:{number}: {what}: not a number ({exc})") from exc
+    if not all(math.isfinite(v) for v in values):
+        raise TrajectoryError(f"{path}:{number}: {what}: non-finite value in {fields}")
+    return values
+
+
+def write_tum(
+    path: Path | str,
+    stamps_s: np.ndarray,
+    poses: np.ndarray,
+    *,
+    z_m: float = 0.0,
+    decimals: int = 9,
+) -> Path:
+    """Write ``t x y z qx qy qz qw`` lines: planar poses (N, 3) at height ``z_m``, rotated about z
+    by their yaw. Stamps and positions carry ``decimals`` digits (9: nanometres; the simulator's
+    odometry logs keep 6, micrometres, like a wheel-encoder log); quaternions always 9.
+    """
+    path = Path(path)
+    stamps_s = np.asarray(stamps_s, dtype=float)
+    poses = np.asarray(poses, dtype=float)
+    if poses.ndim != 2 or poses.shape[1] != 3 or stamps_s.shape != (len(poses),):
+        raise TrajectoryError(
+            f"write_tum: need stamps (N,) and poses (N, 3), got {stamps_s.shape} and {poses.shape}"
+        )
+    half = poses[:, 2] / 2.0
+    d = decimals
+    z = f"{z_m:.{d}f}" if z_m != 0.0 or d != 9 else "0"
+    rows = [
+        f"{t:.{d}f} {x:.{d}f} {y:.{d}f} {z} 0 0 {qz:.9f} {qw:.9f}"
+        for t, x, y, qz, qw in zip(
+            stamps_s, poses[:, 0], poses[:, 1], np.sin(half), np.cos(half), strict=True
+        )
+    ]
+    write_text_atomic(path, "# timestamp tx ty tz qx qy qz qw\n" + "".join(r + "\n" for r in rows))
+    return path
+
+
+def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps_s (N,), poses (N, 3)) from a TUM file; yaw from the quaternion.
+
+    Rejects lines without 8 numbers, non-unit quaternions, tilted poses (this is a planar
+    framework) and timestamps that go backwards.
+    """
+    path = Path(path)
+    stamps: list[float] = []
+    poses: list[tuple[float, float, float]] = []
+    for number, fields in _lines(path):
+        if len(fields) != 8:
+            raise TrajectoryError(
+                f"{path}:{number}: TUM line needs 8 fields (t x y z qx qy qz qw), got {len(fields)}"
+            )
+        t, x, y, _, qx, qy, qz, qw = _floats(path, number, fields, "TUM line")
+        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        if abs(norm - 1.0) > 1e-3:
+            raise TrajectoryError(f"{path}:{number}: quaternion norm is {norm:.6g}, not 1")
+        if math.hypot(qx, qy) / norm > 1e-3:
+            raise TrajectoryError(
+                f"{path}:{number}: pose is tilted (qx={qx}, qy={qy}); planar poses only"
+            )
+        if stamps and t < stamps[-1]:
+            raise TrajectoryError(
+                f"{path}:{number}: timestamp {t} goes back (previous {stamps[-1]})"
+            )
+        stamps.append(t)
+        poses.append((x, y, float(wrap_angle(2.0 * math.atan2(qz, qw)))))
+    if not stamps:
+        raise TrajectoryError(f"{path}: no poses in the TUM file")
+    return np.asarray(stamps), np.asarray(poses).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class G2oGraph:
+    """A 2D pose graph as in g2o files.
+
+    ``vertex_ids`` (N,) and ``poses`` (N, 3); ``edges`` (M, 2) vertex ids ``i j``;
+    ``measurements`` (M, 3): pose of j in i's frame; ``information`` (M, 3, 3);
+    ``fixed``: ids of ``FIX`` lines.
+    """
+
+    vertex_ids: np.ndarray
+    poses: np.ndarray
+    edges: np.ndarray
+    measurements: np.ndarray
+    information: np.ndarray
+    fixed: tuple[int, ...] = field(default=())
+
+    @property
+    def num_poses(self) -> int:
+        if len(self.vertex_ids):
+            return len(self.vertex_ids)
+        return len(np.unique(self.edges))
+
+
+_UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+
+
+def read_g2o(path: Path | str) -> G2oGraph:
+    """Read ``VERTEX_SE2``, ``EDGE_SE2`` and ``FIX`` lines; anything else is an error."""
+    path = Path(path)
+    vertex_ids: list[int] = []
+    poses: list[list[float]] = []
+    edges: list[tuple[int, int]] = []
+    measurements: list[list[float]] = []
+    information: list[np.ndarray] = []
+    fixed: list[int] = []
+    seen: set[int] = set()
+    for number, fields in _lines(path):
+        tag = fields[0]
+        if tag == "VERTEX_SE2":
+            if len(fields) != 5:
+                raise TrajectoryError(
+                    f"{path}:{number}: VERTEX_SE2 needs 'id x y theta', got {len(fields) - 1} "
+                    "values"
+                )
+            vid = _int(path, number, fields[1])
+            if vid in seen:
+                raise TrajectoryError(f"{path}:{number}: vertex {vid} defined twice")
+            seen.add(vid)
+            vertex_ids.append(vid)
+            poses.append(_floats(path, number, fields[2:], "VERTEX_SE2"))
+        elif tag == "EDGE_SE2":
+            if len(fields) != 12:
+                raise TrajectoryError(
+                    f"{path}:{number}: EDGE_SE2 needs 'i j dx dy dtheta' and 6 information "
+                    f"values, got {len(fields) - 1} values"
+                )
+            i, j = _int(path, number, fields[1]), _int(path, number, fields[2])
+            values = _floats(path, number, fields[3:], "EDGE_SE2")
+            info = np.zeros((3, 3))
+            for (r, c), v in zip(_UPPER, values[3:], strict=True):
+                info[r, c] = info[c, r] = v
+            if np.linalg.eigvalsh(info).min() <= 0:
+                raise TrajectoryError(
+                    f"{path}:{number}: EDGE_SE2 {i}-{j}: information matrix is not positive "
+                    "definite"
+                )
+            edges.append((i, j))
+            measurements.append(values[:3])
+            information.append(info)
+        elif tag == "FIX":
+            fixed += [_int(path, number, f) for f in fields[1:]]
+        else:
+            raise TrajectoryError(f"{path}:{number}: unsupported g2o record {tag!r}")
+    if not vertex_ids and not edges:
+        raise TrajectoryError(f"{path}: no VERTEX_SE2 or EDGE_SE2 lines")
+    missing = {v for e in edges for v in e} - seen if vertex_ids else set()
+    if missing:
+        raise TrajectoryError(
+            f"{path}: edges refer to undefined vertices {sorted(missing)[:5]}"
+            + (" …" if len(missing) > 5 else "")
+        )
+    return G2oGraph(
+        vertex_ids=np.asarray(vertex_ids, dtype=np.int64),
+        poses=np.asarray(poses, dtype=float).reshape(-1, 3),
+        edges=np.asarray(edges, dtype=np.int64).reshape(-1, 2),
+        measurements=np.asarray(measurements, dtype=float).reshape(-1, 3),
+        information=np.asarray(information, dtype=float).reshape(-1, 3, 3),
+        fixed=tuple(fixed),
+    )
+
+
+def _int(path: Path, number: int, text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError as exc:
+        raise TrajectoryError(f"{path}:{number}: vertex id {text!r} is not an integer") from exc
+    if value < 0:
+        raise TrajectoryError(f"{path}:{number}: vertex id {value} is negative")
+    return value
+
+
+def write_g2o(path: Path | str, graph: G2oGraph) -> Path:
+    """Write a 2D pose graph in g2o format (readable by g2o, GTSAM's readG2o, :func:`read_g2o`)."""
+    path = Path(path)
+    out = [
+        f"VERTEX_SE2 {vid} {x:.9g} {y:.9g} {t:.9g}\n"
+        for vid, (x, y, t) in zip(graph.vertex_ids, graph.poses, strict=True)
+    ]
+    for (i, j), (dx, dy, dt), info in zip(
+        graph.edges, graph.measurements, graph.information, strict=True
+    ):
+        upper = " ".join(f"{info[r, c]:.9g}" for r, c in _UPPER)
+        out.append(f"EDGE_SE2 {i} {j} {dx:.9g} {dy:.9g} {dt:.9g} {upper}\n")
+    if graph.fixed:
+        out.append("FIX " + " ".join(str(v) for v in graph.fixed) + "\n")
+    write_text_atomic(path, "".join(out))
+    return path
+
+
+def read_carmen_odometry(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps_s (N,), poses (N, 3)) from the ``ODOM`` lines of a CARMEN log (.gz or text).
+
+    Fields: ``ODOM x y theta tv rv accel ipc_time host logger_time``; the stamp is ``ipc_time``.
+    Lines stamped 0 are skipped: the corrected logs insert them after each scan to reset the
+    pose, and they carry no time.
+    """
+    path = Path(path)
+    stamps: list[float] = []
+    poses: list[list[float]] = []
+    for number, fields in _lines(path):
+        if fields[0] != "ODOM":
+            continue
+        if len(fields) < 8:
+            raise TrajectoryError(
+                f"{path}:{number}: ODOM line needs x y theta tv rv accel ipc_time, got "
+                f"{len(fields) - 1} fields"
+            )
+        x, y, theta, *_, stamp = _floats(path, number, fields[1:8], "ODOM line")
+        if stamp > 0:
+            stamps.append(stamp)
+            poses.append([x, y, theta])
+    if not stamps:
+        raise TrajectoryError(f"{path}: no timestamped ODOM lines")
+    return np.asarray(stamps), np.asarray(poses)
+
+
+def read_relations(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (M, 2) ``t1 t2``, relations (M, 3) ``x y yaw``) of a SLAM-benchmark file.
+
+    Lines ``t1 t2 x y z roll pitch yaw`` (Kümmerle et al. 2009): the motion from the pose at t1 to
+    the pose at t2 in the t1 frame; z, roll and pitch are ignored (planar data).
+    """
+    path = Path(path)
+    stamps: list[list[float]] = []
+    relations: list[list[float]] = []
+    for number, fields in _lines(path):
+        if len(fields) != 8:
+            raise TrajectoryError(
+                f"{path}:{number}: relation needs 8 fields (t1 t2 x y z roll pitch yaw), got "
+                f"{len(fields)}"
+            )
+        t1, t2, x, y, _, _, _, yaw = _floats(path, number, fields, "relation")
+        stamps.append([t1, t2])
+        relations.append([x, y, yaw])
+    if not stamps:
+        raise TrajectoryError(f"{path}: no relations")
+    return np.asarray(stamps), np.asarray(relations)
