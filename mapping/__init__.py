@@ -6,9 +6,9 @@
 * ``mapping.fusion`` — fusing raw scans at given poses (local and global maps), moving grids
   between frames, merging grids.
 * ``mapping.band`` — 2D grids from height bands (the paper's sub-ceiling section).
-* Formats: ``mapping.formats.npz`` (native, versioned, lossless), ``mapping.formats.ply`` (point clouds and
-  occupied voxels), ``mapping.formats.pgm`` (ROS map_server), ``mapping.formats.octomap_bt`` (OctoMap ``.bt``);
-  ``mapping.figures`` draws bands.
+* Formats: ``mapping.formats.npz`` (native, versioned, lossless), ``mapping.formats.ply`` (point
+  clouds and occupied voxels), ``mapping.formats.pgm`` (ROS map_server),
+  ``mapping.formats.octomap_bt`` (OctoMap ``.bt``); ``mapping.figures`` draws bands.
 
 Every error is a ``mapping.errors.MapError``.
 """

@@ -14,22 +14,20 @@ origin at 0 (the default) the lattice is OctoMap's.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from mapping.errors import MapError
 from mapping.kernels.blocks import (
     BLOCK_OFFSET,
-    EMPTY_KEY,
     first_bad_point,
-    layout_table,
     rebuild_table,
 )
 from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks
-from mapping.kernels.cube import CUBE_ARRAY_BYTES
 from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.logodds import logodds, probability
+from mapping.storage import BlockStorage, discard_scan_cube, scan_cube
 
 __all__ = ["GridParams", "OccupancyGrid"]
 
@@ -117,85 +115,6 @@ class GridParams:
         )
 
 
-@dataclass
-class _Storage:
-    """The block pool, its hash table and the per-scan bits (see ``mapping.kernels.blocks``)."""
-
-    block_size: int
-    capacity: int
-    coords: np.ndarray = field(init=False)  # (capacity, 3) int64 block coordinates
-    logodds: np.ndarray = field(init=False)  # (capacity, bs³) float64, 0 until observed
-    known: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: observed
-    flags: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: updated this scan
-    block_scan: np.ndarray = field(init=False)  # (capacity,) int64 scan the flags belong to
-    count: np.ndarray = field(init=False)  # (1,) int64 blocks in use
-    updates: np.ndarray = field(init=False)  # (1,) int64 cell updates by scans so far
-    table: np.ndarray = field(init=False)  # (2, 2^bits) int64: keys, pool indices
-    table_bits: int = field(init=False)
-    lut: np.ndarray = field(init=False)  # (3, bs) in-block layout
-
-    def __post_init__(self) -> None:
-        cells = self.block_size**3
-        # Rows of blocks not yet created are left uninitialised: the kernels clear a block's
-        # rows when they create it, so growing the pool copies only the rows in use.
-        self.coords = np.zeros((self.capacity, 3), dtype=np.int64)
-        self.logodds = np.empty((self.capacity, cells), dtype=np.float64)
-        self.known = np.empty((self.capacity, -(-cells // 8)), dtype=np.uint8)
-        self.flags = np.empty_like(self.known)
-        self.block_scan = np.zeros(self.capacity, dtype=np.int64)
-        self.count = np.zeros(1, dtype=np.int64)
-        self.updates = np.zeros(1, dtype=np.int64)
-        self.table_bits = _table_bits(self.capacity)
-        self.table = np.full((2, 1 << self.table_bits), EMPTY_KEY, dtype=np.int64)
-        self.lut = layout_table(self.block_size)
-
-    @property
-    def shift(self) -> int:
-        return 64 - self.table_bits
-
-    @property
-    def used(self) -> int:
-        return int(self.count[0])
-
-    def grow(self, capacity: int | None = None) -> None:
-        """Double the pool (or grow it to ``capacity``), keeping every block."""
-        n = self.used
-        new = max(capacity or 0, 2 * self.capacity, 1)
-
-        def grown(old: np.ndarray) -> np.ndarray:
-            out = np.empty((new, *old.shape[1:]), dtype=old.dtype)
-            out[:n] = old[:n]
-            return out
-
-        self.coords, self.logodds = grown(self.coords), grown(self.logodds)
-        self.known, self.flags = grown(self.known), grown(self.flags)
-        self.block_scan = grown(self.block_scan)
-        self.capacity = new
-        self.table_bits = _table_bits(new)
-        self.table = rebuild_table(self.coords, n, self.table_bits)
-
-    def nbytes(self) -> int:
-        arrays = (self.coords, self.logodds, self.known, self.flags, self.block_scan, self.table)
-        return sum(int(a.nbytes) for a in arrays)
-
-
-#: The bitmap that de-duplicates a scan's updates near the sensor (see ``mapping.kernels.cube``):
-#: 16 MB of address space, of which a scan touches the pages around its rays. All zeros
-#: between scans, so every grid shares it (kernels hold the GIL: one scan at a time).
-_SCAN_CUBE: list[np.ndarray] = []
-
-
-def _scan_cube() -> np.ndarray:
-    if not _SCAN_CUBE:
-        _SCAN_CUBE.append(np.zeros(CUBE_ARRAY_BYTES, dtype=np.uint8))
-    return _SCAN_CUBE[0]
-
-
-def _table_bits(capacity: int) -> int:
-    """Hash table size for a pool: at most half full."""
-    return max(4, math.ceil(math.log2(2 * capacity)))
-
-
 class OccupancyGrid:
     """A 3D occupancy grid that grows on demand (DESIGN §6).
 
@@ -206,7 +125,7 @@ class OccupancyGrid:
 
     def __init__(self, params: GridParams | None = None, *, capacity_blocks: int = _INITIAL_BLOCKS):
         self.params = params if params is not None else GridParams()
-        self._store = _Storage(self.params.block_size_cells, max(1, int(capacity_blocks)))
+        self._store = BlockStorage(self.params.block_size_cells, max(1, int(capacity_blocks)))
         self._scan_id = 0
         # Cells farther than this from the origin cannot be packed into block keys.
         self._max_cells = (BLOCK_OFFSET - 2) * self.params.block_size_cells
@@ -302,7 +221,7 @@ class OccupancyGrid:
         params, store = self.params, self._store
         bs = params.block_size_cells
         lg = bs.bit_length() - 1 if bs & (bs - 1) == 0 else -1
-        cube = _scan_cube()
+        cube = scan_cube()
         phase, start = PHASE_HITS, 0
         while True:
             phase, start = integrate(
@@ -338,7 +257,7 @@ class OccupancyGrid:
             try:
                 store.grow()
             except BaseException:
-                _SCAN_CUBE.clear()  # it holds half a scan's bits: the next scan starts afresh
+                discard_scan_cube()  # it holds half a scan's bits: the next scan starts afresh
                 raise
 
     def apply_evidence(self, cells: np.ndarray, evidence: np.ndarray) -> None:

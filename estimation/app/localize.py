@@ -1,8 +1,8 @@
 """``coopmap localize``: global localization of a scan grid in a map, both ROS map_server files.
 
 Glue between the configuration, the map_server reader of ``mapping.formats.pgm`` and the search of
-``estimation.search.exhaustive``: read both grids, search the whole map (or, given a prior position, a
-window around it that grows until the peak is dominant), and report the pose of the scan grid's
+``estimation.search.exhaustive``: read both grids, search the whole map (or, given a prior position,
+a window around it that grows until the peak is dominant), and report the pose of the scan grid's
 frame in the map frame with the fields of DESIGN §11; optionally draw the position PDF.
 """
 

@@ -1,8 +1,9 @@
 """The pose graph (DESIGN §5): events in, factors and initial values out.
 
-:class:`GraphBuilder` turns the event stream (``estimation.posegraph.events``) into factor specifications
-and initial values, one :class:`Increment` per event. The batch smoother collects them all; iSAM2
-is fed each increment as it comes — the same builder for both, so both solve the same problem.
+:class:`GraphBuilder` turns the event stream (``estimation.posegraph.events``) into factor
+specifications and initial values, one :class:`Increment` per event. The batch smoother collects
+them all; iSAM2 is fed each increment as it comes — the same builder for both, so both solve the
+same problem.
 
 Variables are the robot poses ``T_map_robot`` (keys from ``estimation.posegraph.keys``). Factors:
 
@@ -10,10 +11,10 @@ Variables are the robot poses ``T_map_robot`` (keys from ``estimation.posegraph.
 * ``odometry`` — ``BetweenFactorPose2`` between consecutive poses of one robot, with sigmas
   growing with the distance and angle travelled;
 * ``mutual`` — one ``BetweenFactorPose2`` per mutual observation: the maximum-likelihood relative
-  pose of the two robots from the four raw beacon measurements (``estimation.posegraph.mutual``), with its
-  covariance, the Cramér–Rao bound. To first order this carries exactly the information of the raw
-  range/bearing factors, in one native factor without beacon variables (``factor_study`` measures
-  the alternatives);
+  pose of the two robots from the four raw beacon measurements (``estimation.posegraph.mutual``),
+  with its covariance, the Cramér–Rao bound. To first order this carries exactly the information of
+  the raw range/bearing factors, in one native factor without beacon variables (``factor_study``
+  measures the alternatives);
 * ``global`` — a search result: a prior in the map frame, or a between-factor to the earlier
   station whose map was matched; mean and covariance from the search PDF's peak, floored.
 
@@ -29,7 +30,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 import numpy as np
 from scipy.stats import chi2
@@ -41,9 +42,6 @@ from estimation.posegraph.mutual import check_observation, localize_mutual
 from estimation.posegraph.seed import seed_pose
 from estimation.posepdf import PosePdf
 from sensors.geometry import se2
-
-if TYPE_CHECKING:
-    import gtsam
 
 __all__ = [
     "FactorKind",
@@ -57,14 +55,10 @@ __all__ = [
     "frame_to_body_covariance",
     "mutual_between",
     "odometry_covariance",
-    "to_gtsam_factor",
-    "to_gtsam_graph",
-    "to_gtsam_values",
 ]
 
 FactorKind = Literal["prior", "odometry", "mutual", "global"]
 RobustKernel = Literal["none", "huber", "cauchy"]
-_KERNEL_WIDTH = math.sqrt(float(chi2.ppf(0.95, 3)))
 
 
 @dataclass(frozen=True)
@@ -567,46 +561,3 @@ def check_constrained(factors: Sequence[FactorSpec], keys: Iterable[int]) -> Non
             "unconstrained: " + ", ".join(parts) + " not connected to any prior; add a Start, a "
             "mutual observation or a global localization that ties them to the map"
         )
-
-
-# -- GTSAM -----------------------------------------------------------------------------------
-
-
-def to_gtsam_factor(spec: FactorSpec, kernel: RobustKernel = "none") -> gtsam.NonlinearFactor:
-    """The native GTSAM factor of a spec; ``kernel`` wraps robust (mutual/global) factors."""
-    import gtsam
-
-    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(spec.covariance)
-    if spec.robust and kernel != "none":
-        # The kernels act on the norm of the whitened 3-vector: leave its 95 % quantile alone.
-        k = _KERNEL_WIDTH
-        estimator = (
-            gtsam.noiseModel.mEstimator.Huber.Create(k)
-            if kernel == "huber"
-            else gtsam.noiseModel.mEstimator.Cauchy.Create(k)
-        )
-        noise = gtsam.noiseModel.Robust.Create(estimator, noise)
-    pose = gtsam.Pose2(*(float(v) for v in spec.measurement))
-    if len(spec.keys) == 1:
-        return gtsam.PriorFactorPose2(spec.keys[0], pose, noise)
-    return gtsam.BetweenFactorPose2(spec.keys[0], spec.keys[1], pose, noise)
-
-
-def to_gtsam_graph(
-    factors: Iterable[FactorSpec], kernel: RobustKernel = "none"
-) -> gtsam.NonlinearFactorGraph:
-    import gtsam
-
-    graph = gtsam.NonlinearFactorGraph()
-    for spec in factors:
-        graph.add(to_gtsam_factor(spec, kernel))
-    return graph
-
-
-def to_gtsam_values(poses: Mapping[int, np.ndarray]) -> gtsam.Values:
-    import gtsam
-
-    values = gtsam.Values()
-    for key, (x, y, yaw) in poses.items():
-        values.insert(key, gtsam.Pose2(float(x), float(y), float(yaw)))
-    return values

@@ -1,7 +1,8 @@
 """Batch (Levenberg–Marquardt, GNC) and incremental (iSAM2) smoothing of the pose graph.
 
-Both take their factors from one :class:`~estimation.posegraph.graph.GraphBuilder`, so on the same events
-they solve the same problem and reach the same estimate. Estimates are ``{key: (x, y, yaw)}``.
+Both take their factors from one :class:`~estimation.posegraph.graph.GraphBuilder`, so on the same
+events they solve the same problem and reach the same estimate. Estimates are ``{key: (x, y,
+yaw)}``.
 
 Robust estimation (DESIGN §5): in batch, ``"gnc_tls"`` runs graduated non-convexity with the
 truncated-least-squares loss (``gtsam.GncLMOptimizer``), with priors and odometry as known
@@ -39,9 +40,8 @@ from estimation.posegraph.graph import (
     Increment,
     RobustKernel,
     check_constrained,
-    to_gtsam_graph,
-    to_gtsam_values,
 )
+from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
 from sensors.atomic import atomic_path
 from sensors.geometry import se2
 

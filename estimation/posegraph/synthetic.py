@@ -8,12 +8,12 @@ against a fixed prior map every ``map_prior_every`` stations, and against the ne
 an earlier lap (a loop closure).
 
 Measurements are drawn from exactly the noise models the graph assumes (calibrated sigmas):
-odometry per :func:`~estimation.posegraph.graph.odometry_covariance`, range/bearing of each beacon, and
-search PDFs (a Gaussian on a 0.5σ lattice aligned to the map grid, like a real search's).
-Gross outliers are added so that ``outlier_fraction`` of the mutual and global events are wrong:
-a second mutual observation of a wrong but self-consistent geometry (it passes the s1/s2 check),
-or a second search result that matched the wrong place. They are drawn from their own random
-generator: with or without them, the correct events are the same.
+odometry per :func:`~estimation.posegraph.graph.odometry_covariance`, range/bearing of each beacon,
+and search PDFs (a Gaussian on a 0.5σ lattice aligned to the map grid, like a real search's). Gross
+outliers are added so that ``outlier_fraction`` of the mutual and global events are wrong: a second
+mutual observation of a wrong but self-consistent geometry (it passes the s1/s2 check), or a second
+search result that matched the wrong place. They are drawn from their own random generator: with or
+without them, the correct events are the same.
 """
 
 from __future__ import annotations

@@ -22,7 +22,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from estimation.errors import EstimationError
-from estimation.posegraph.graph import FactorSpec, to_gtsam_graph, to_gtsam_values
+from estimation.posegraph.graph import FactorSpec
+from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
 from estimation.posegraph.keys import key_label
 from estimation.posegraph.smoother import BatchResult, RobustMode, extract_poses, optimize_batch
 from estimation.posepdf import PosePdf

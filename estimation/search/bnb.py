@@ -1,7 +1,7 @@
 """The best lattice pose alone, exactly: branch and bound over (rotation, translation block).
 
-For one rotation the search's score (``estimation.search.exhaustive``) is Σ_k v_L(k)·v_G(m + o_k): local
-cell k, at the integer offset o_k from the translation m, falls in global cell m + o_k, and
+For one rotation the search's score (``estimation.search.exhaustive``) is Σ_k v_L(k)·v_G(m + o_k):
+local cell k, at the integer offset o_k from the translation m, falls in global cell m + o_k, and
 cells off the map count 0.
 
 **Bound.** Over a block of B × B translations m = B·T + d (0 ≤ d < B), a cell of the group

@@ -182,7 +182,7 @@ def _band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
         return None
     T_frame_map = np.linalg.inv(pose2_matrix(*frame))
     transforms = np.stack(
-        [T_frame_map @ pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner for v in usable]
+        [T_frame_map @ (pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner) for v in usable]
     )
     grid = fuse_scans([MapScan(v.points_scanner) for v in usable], transforms, params.grid)
     low, high = params.ceiling_m if which == "ceiling" else params.floor_m

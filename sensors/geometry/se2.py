@@ -79,7 +79,8 @@ def between(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
     if p is not None and q is not None:
         c, s = math.cos(p[2]), math.sin(p[2])
         dx, dy = q[0] - p[0], q[1] - p[1]
-        return np.array([c * dx + s * dy, -s * dx + c * dy, _wrap(q[2] - p[2])])
+        # remainder is exact: odometry increments keep every bit of the turn they measure
+        return np.array([c * dx + s * dy, -s * dx + c * dy, math.remainder(q[2] - p[2], math.tau)])
     x1, y1, t1 = _split(T_w_a)
     x2, y2, t2 = _split(T_w_b)
     c, s = np.cos(t1), np.sin(t1)

@@ -18,9 +18,8 @@ from estimation.posegraph.graph import (
     check_constrained,
     mutual_between,
     odometry_covariance,
-    to_gtsam_factor,
-    to_gtsam_values,
 )
+from estimation.posegraph.gtsam_factors import to_gtsam_factor, to_gtsam_values
 from estimation.posegraph.keys import key_label, pose_key, split_key
 from estimation.posegraph.mutual import localize_mutual
 from estimation.posegraph.synthetic import leapfrog, mutual_measurements, search_pdf, visible

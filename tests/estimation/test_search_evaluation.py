@@ -12,21 +12,19 @@ from typer.testing import CliRunner
 
 from estimation.app.cli.main import app
 from estimation.app.config import load_config
-from estimation.app.evaluation.localization import (
-    BETAS,
-    Trial,
-    _free_positions,
-    _view_scan,
-    _world_map,
-    by_room_kind,
-    calibrate_beta,
+from estimation.app.evaluation.localization import format_report
+from estimation.app.evaluation.localization_real import (
     carmen_trials,
-    format_report,
     geb079_trials,
     read_carmen_scans,
-    simulated_trials,
-    summarise,
 )
+from estimation.app.evaluation.localization_sim import (
+    free_positions,
+    simulated_trials,
+    view_scan,
+    world_map,
+)
+from estimation.app.evaluation.trials import BETAS, Trial, by_room_kind, calibrate_beta, summarise
 from estimation.app.resources import resolve_builtin
 from estimation.app.rig import T_robot_scanner, search_params
 from estimation.errors import EstimationError
@@ -71,7 +69,7 @@ def test_station_map_trials_fuse_several_views_in_the_reference_frame() -> None:
 
 def test_robots_stand_under_luminaires_but_not_beside_desks() -> None:
     world = load_world(resolve_builtin("worlds", "office_loop"))
-    free = _free_positions(world, load_config(), 0.5)
+    free = free_positions(world, load_config(), 0.5)
 
     def nearest(xy: tuple[float, float]) -> float:
         return float(np.hypot(*(free - xy).T).min())
@@ -90,19 +88,17 @@ def test_a_view_inside_each_office_finds_that_office() -> None:
     rng = np.random.default_rng(7)
     world = load_world(resolve_builtin("worlds", "office_loop"))
     scene = RaycastScene(build_mesh(world, cylinder_segments=config.simulation.cylinder_segments))
-    global_ = _world_map(world, config, rng, scene)["ceiling"]
+    global_ = world_map(world, config, rng, scene)["ceiling"]
     params = search_params(config.search)
-    free = _free_positions(world, config, 0.5)
+    free = free_positions(world, config, 0.5)
     offices = [room for room in world.rooms if room.name.startswith("office")]
     assert len(offices) == 8
     limits = config.bands.ceiling
     for room in offices:
         middle = room.footprint_xy.mean(axis=0)
         x, y = free[np.argmin(np.hypot(*(free - middle).T))]
-        scan = _view_scan(world, (x, y, -120.0), config, rng, scene)
-        grid = fuse_scans(
-            [scan], [T_robot_scanner(config)], GridParams(**config.grid.model_dump())
-        )
+        scan = view_scan(world, (x, y, -120.0), config, rng, scene)
+        grid = fuse_scans([scan], [T_robot_scanner(config)], GridParams(**config.grid.model_dump()))
         local = extract_band(
             grid, limits.min_m, limits.max_m, free_min_observed=config.bands.free_min_observed
         )

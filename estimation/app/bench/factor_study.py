@@ -2,9 +2,9 @@
 
 One mutual observation is four raw measurements (a, α, b, β) of two robot poses. Forms:
 
-* ``between_ml`` (chosen, used by :mod:`estimation.posegraph.graph`): one native ``BetweenFactorPose2``
-  with the maximum-likelihood relative pose of the four measurements and its covariance, the
-  Cramér–Rao bound;
+* ``between_ml`` (chosen, used by :mod:`estimation.posegraph.graph`): one native
+  ``BetweenFactorPose2`` with the maximum-likelihood relative pose of the four measurements and its
+  covariance, the Cramér–Rao bound;
 * ``between_closed_form``: the same factor with the closed form of paper eq. 1–2 and the
   covariance propagated through its Jacobian — simpler, but the closed form does not weigh the
   four measurements optimally (up to ~2× the bound at short range);
@@ -49,13 +49,8 @@ import gtsam
 import numpy as np
 
 from estimation.posegraph.events import Observe
-from estimation.posegraph.graph import (
-    FactorSpec,
-    GraphBuilder,
-    GraphSettings,
-    mutual_between,
-    to_gtsam_factor,
-)
+from estimation.posegraph.graph import FactorSpec, GraphBuilder, GraphSettings, mutual_between
+from estimation.posegraph.gtsam_factors import to_gtsam_factor
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.mutual import (
     closed_form,

@@ -72,8 +72,8 @@ def grid_params(grid: GridConfig) -> GridParams:
 def simulated_scan(config: Config, points: int = SCAN_POINTS, seed: int = 0) -> FusionCase:
     """A simulated 3D scan of essex_lab with ``points`` returns, in the map frame.
 
-    Today a 360° view from the demo's pose (``estimation.app.sim.demo.simulate_view``: LMS range noise,
-    8 m range), subsampled at random (seeded) in scan order.
+    Today a 360° view from the demo's pose (``estimation.app.sim.demo.simulate_view``: LMS range
+    noise, 8 m range), subsampled at random (seeded) in scan order.
     """
     world = load_world(resolve_builtin("worlds", "essex_lab"))
     rng = np.random.default_rng(seed)

@@ -2,8 +2,8 @@
 
 Cases:
 
-* ``leapfrog_5000`` — a synthetic two-robot leapfrog mission (``estimation.posegraph.synthetic``): 500
-  stations × 10 poses, mutual observations, odometry, and every station globally localized
+* ``leapfrog_5000`` — a synthetic two-robot leapfrog mission (``estimation.posegraph.synthetic``):
+  500 stations × 10 poses, mutual observations, odometry, and every station globally localized
   against a fixed prior map; fed event by event through the graph builder (gates included);
 * ``leapfrog_5000_loops`` — the same mission without a prior map: stations are localized
   against the stations of earlier laps (loop-closure between-factors), the hard case for iSAM2;
@@ -35,7 +35,8 @@ import numpy as np
 from estimation.app.evaluation.metrics import ate
 from estimation.app.resources import DATA_DIR
 from estimation.errors import EstimationError
-from estimation.posegraph.graph import FactorSpec, GraphSettings, to_gtsam_graph, to_gtsam_values
+from estimation.posegraph.graph import FactorSpec, GraphSettings
+from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
 from estimation.posegraph.smoother import (
     IncrementalSmoother,
     RobustMode,
