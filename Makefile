@@ -11,7 +11,8 @@ SYSLIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
 demo: $(STAMP)
 	$(BIN)/coopmap demo
 
-test: $(STAMP)
+# The README's test command: everything CI runs (lint, types, the test suite).
+test: lint typecheck
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)

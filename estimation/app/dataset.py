@@ -289,7 +289,8 @@ def build_events(
             stamps, poses = odometry[robot]
             before = _pose_at(stamps, poses, float(entry["start_s"]))
             after = _pose_at(stamps, poses, float(entry["t_s"]))
-            delta: tuple[float, float, float] = tuple(se2.between(before, after).tolist())  # type: ignore[assignment]
+            dx, dy, dyaw = (float(v) for v in se2.between(before, after))
+            delta = (dx, dy, dyaw)
             if pose_key(robot, int(entry["from_index"])) in builder.guesses:
                 emit(Move(robot, int(entry["to_index"]), delta))
             else:

@@ -25,9 +25,9 @@ from estimation.app.cli.main import app
 from estimation.app.config import Config
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
+from tests.paths import DATA
 
 pyoctomap = pytest.importorskip("pyoctomap")
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 FIGURES = {"benchmark", "ratio", "rays_per_s", "peer_rays_per_s", "agreement", "cases"}
 
 

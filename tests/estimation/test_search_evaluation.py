@@ -35,8 +35,8 @@ from mapping.grid import GridParams
 from sensors.geometry.se2 import wrap_angle
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import load_world
+from tests.paths import DATA
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 GEB079 = DATA / "octomap_fr079" / "geb079.bt"
 INTEL = DATA / "carmen_corrected" / "intel-corrected.log.gz"
 

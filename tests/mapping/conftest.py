@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from mapping.kernels.traversal import ray_cells
+from tests.paths import DATA
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 FR079 = DATA / "octomap_fr079"
 
 requires_fr079 = pytest.mark.skipif(

@@ -33,7 +33,7 @@ from sensors.sim.mission import (
 )
 from sensors.sim.planner import FreeSpace, free_space
 from sensors.sim.scene import RaycastScene, build_mesh
-from sensors.sim.world import World, load_world, perturb_movables, world_to_yaml
+from sensors.sim.world import ObjectChange, World, load_world, perturb_movables, world_to_yaml
 from sensors.yamlio import merge_mappings
 
 __all__ = ["SimulationResult", "resolve_mission_world", "run_simulation"]
@@ -115,7 +115,7 @@ def run_simulation(
     )
     segments = config.simulation.cylinder_segments
     scene = RaycastScene(build_mesh(world, cylinder_segments=segments))
-    changed_world, changes = world, []
+    changed_world, changes = world, list[ObjectChange]()
     if mission.changes is not None:
         c = mission.changes
         changed_world, changes = perturb_movables(

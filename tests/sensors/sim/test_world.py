@@ -18,9 +18,10 @@ from sensors.sim.world import (
     world_from_mapping,
     world_to_yaml,
 )
+from tests.paths import REPO
 from tests.sensors.sim.conftest import box_room_document
 
-WORLDS = Path(__file__).resolve().parents[3] / "configs" / "worlds"
+WORLDS = REPO / "configs" / "worlds"
 BUILTIN = ["essex_lab", "office_loop", "cluttered_hall"]
 
 

@@ -28,8 +28,8 @@ from sensors.sim.mission import (
 )
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import World, load_world, world_from_mapping
+from tests.paths import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 ROOM = {"name": "r", "footprint": [[0, 0], [10, 0], [10, 8], [0, 8]], "ceiling_m": 3.0}
 
 

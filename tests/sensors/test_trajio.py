@@ -10,7 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation.errors import EstimationError
+from sensors.errors import TrajectoryError
 from sensors.trajio import (
     G2oGraph,
     read_carmen_odometry,
@@ -20,8 +20,8 @@ from sensors.trajio import (
     write_g2o,
     write_tum,
 )
+from tests.paths import DATA
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 INTEL_G2O = DATA / "pose_graphs_g2o" / "intel.g2o"
 
 
@@ -63,14 +63,14 @@ def test_corrupt_tum_files_are_named_with_line_and_reason(
 ) -> None:
     path = tmp_path / "t.tum"
     path.write_text(text)
-    with pytest.raises(EstimationError, match=pattern):
+    with pytest.raises(TrajectoryError, match=pattern):
         read_tum(path)
 
 
 def test_binary_garbage_is_not_a_trajectory(tmp_path: Path) -> None:
     path = tmp_path / "t.tum"
     path.write_bytes(b"\xff\xfe\x00\x81garbage")
-    with pytest.raises(EstimationError, match="not a readable text file"):
+    with pytest.raises(TrajectoryError, match="not a readable text file"):
         read_tum(path)
 
 
@@ -153,7 +153,7 @@ def test_corrupt_g2o_files_are_named_with_line_and_reason(
 ) -> None:
     path = tmp_path / "g.g2o"
     path.write_text(text)
-    with pytest.raises(EstimationError, match=pattern):
+    with pytest.raises(TrajectoryError, match=pattern):
         read_g2o(path)
 
 
@@ -176,11 +176,11 @@ def test_carmen_odometry_skips_unstamped_lines(tmp_path: Path) -> None:
     np.testing.assert_allclose(poses, [[1, 2, 0.5], [1.5, 2, 0.6]])
     bad = tmp_path / "bad.log"
     bad.write_text("ODOM 1 2\n")
-    with pytest.raises(EstimationError, match=r"bad\.log:1: ODOM line needs"):
+    with pytest.raises(TrajectoryError, match=r"bad\.log:1: ODOM line needs"):
         read_carmen_odometry(bad)
     empty = tmp_path / "empty.log"
     empty.write_text("PARAM a b\n")
-    with pytest.raises(EstimationError, match="no timestamped ODOM lines"):
+    with pytest.raises(TrajectoryError, match="no timestamped ODOM lines"):
         read_carmen_odometry(empty)
 
 
@@ -191,8 +191,8 @@ def test_relations_reader_checks_its_lines(tmp_path: Path) -> None:
     np.testing.assert_allclose(stamps, [[1.0, 2.0]])
     np.testing.assert_allclose(relations, [[0.5, 0.1, 0.2]])
     path.write_text("1.0 2.0 0.5\n")
-    with pytest.raises(EstimationError, match=r"r\.relations:1: relation needs 8 fields"):
+    with pytest.raises(TrajectoryError, match=r"r\.relations:1: relation needs 8 fields"):
         read_relations(path)
     path.write_text("")
-    with pytest.raises(EstimationError, match="no relations"):
+    with pytest.raises(TrajectoryError, match="no relations"):
         read_relations(path)

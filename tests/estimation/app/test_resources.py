@@ -8,8 +8,7 @@ import pytest
 
 from estimation.app import resources
 from estimation.app.config import ConfigError
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.paths import REPO
 
 
 def test_source_tree_layout() -> None:

@@ -16,8 +16,8 @@ from estimation.app.config import (
     config_to_yaml,
     load_config,
 )
+from tests.paths import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 DEFAULT_YAML = REPO / "configs" / "default.yaml"
 
 

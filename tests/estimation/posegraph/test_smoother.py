@@ -18,8 +18,7 @@ from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import IncrementalSmoother, factor_fingerprint, optimize_batch
 from estimation.posegraph.synthetic import leapfrog, search_pdf
 from sensors.geometry import se2
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.paths import REPO
 
 
 def build(scenario_events: tuple, settings: GraphSettings | None = None) -> GraphBuilder:  # type: ignore[type-arg]

@@ -19,8 +19,7 @@ from estimation.app.sim.simulate import run_simulation
 from mapping.formats.npz import load_map
 from sensors.errors import SensorError
 from sensors.trajio import read_g2o, read_tum
-
-REPO = Path(__file__).resolve().parents[2]
+from tests.paths import REPO
 
 
 @pytest.fixture(scope="module")

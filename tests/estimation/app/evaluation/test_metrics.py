@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +11,8 @@ from estimation.app.evaluation.metrics import align_se2, associate, ate, relatio
 from estimation.errors import EstimationError
 from sensors.geometry import se2
 from sensors.trajio import read_carmen_odometry, read_relations
+from tests.paths import DATA
 
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 INTEL_LOG = DATA / "carmen_corrected" / "intel-corrected.log.gz"
 INTEL_RELATIONS = DATA / "slam_benchmark_relations" / "intel.relations"
 #: The offset from the corrected log's stamps to the relations' (data README).
