@@ -1,9 +1,9 @@
 """A pose probability density on an (x, y, yaw) lattice: what a global-localization search yields.
 
-The exhaustive search (DESIGN §7) scores every pose of a window and keeps the whole PDF; the
-pose graph consumes it twice (DESIGN §5): its best pose **seeds** a new station when the peak is
-dominant, and its high-probability region **validates** the optimized pose. This module holds
-only the data type and those questions; the search itself lives elsewhere.
+The exhaustive search (docs/design.md §7) scores every pose of a window and keeps the whole PDF; the
+pose graph consumes it twice (docs/design.md §5): its best pose **seeds** a new station when the
+peak is dominant, and its high-probability region **validates** the optimized pose. This module
+holds only the data type and those questions; the search itself lives elsewhere.
 
 Lattices are uniform and increasing: ``x_m`` (X,), ``y_m`` (Y,), ``yaw_rad`` (T,); ``prob`` is
 (T, Y, X), non-negative, summing to 1. A yaw lattice whose T steps span 2π wraps around.

@@ -1,6 +1,6 @@
 """2D grids cut from a 3D map: the paper's sub-ceiling cross-section, or any height band.
 
-The vertical columns of the band are summed and re-normalised (DESIGN §6): a cell of the 2D
+The vertical columns of the band are summed and re-normalised (docs/design.md §6): a cell of the 2D
 grid holds the share of the band's voxel layers that are occupied in its column — the same
 quantity ``sensors.sim.truth.band_share`` computes from a world's ground truth, so the two can
 be compared cell for cell. A column is *known* when at least one of its band cells has been
@@ -92,7 +92,7 @@ def extract_band(
     lower_xy: np.ndarray | tuple[float, float] | None = None,
     upper_xy: np.ndarray | tuple[float, float] | None = None,
 ) -> Band:
-    """Sum the grid's columns over a height band and re-normalise (DESIGN §6).
+    """Sum the grid's columns over a height band and re-normalise (docs/design.md §6).
 
     A band cell's value is the number of occupied cells (P > ``threshold``, default the grid's)
     among the band's layers in its column, divided by the number of layers. A column is known

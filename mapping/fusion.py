@@ -1,9 +1,9 @@
 """Local and global maps: fusing raw scans with given poses, moving grids between frames, merging.
 
 A *local* map is built in the reference robot's frame (the scans' poses given in that frame); the
-*global* map is re-fused from every raw scan with the optimized poses in the map frame (DESIGN
-§6) — the step that runs after every optimization. Grids built elsewhere are brought into a
-frame with ``transform_grid`` and fused with ``merge_grids`` (paper eq. 3 per cell).
+*global* map is re-fused from every raw scan with the optimized poses in the map frame
+(docs/design.md §6) — the step that runs after every optimization. Grids built elsewhere are brought
+into a frame with ``transform_grid`` and fused with ``merge_grids`` (paper eq. 3 per cell).
 """
 
 from __future__ import annotations

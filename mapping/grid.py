@@ -1,4 +1,4 @@
-"""The 3D Bayesian occupancy grid (DESIGN §6, paper eq. 3), stored as log-odds in blocks.
+"""The 3D Bayesian occupancy grid (docs/design.md §6, paper eq. 3), stored as log-odds in blocks.
 
 Each cell holds the log-odds of its probability of occupancy, 0 (P = 0.5) until observed, and
 is updated by adding the log-odds of the evidence (identical to the paper's eq. 3, see
@@ -116,7 +116,7 @@ class GridParams:
 
 
 class OccupancyGrid:
-    """A 3D occupancy grid that grows on demand (DESIGN §6).
+    """A 3D occupancy grid that grows on demand (docs/design.md §6).
 
     ``integrate_scan`` fuses one scan by exact voxel traversal; ``merge`` fuses another grid by
     eq. 3; ``cells`` lists what is known. Coordinates are in the frame the grid was built in

@@ -55,7 +55,7 @@ NonNegative = Field(ge=0)
 
 
 class ScannerConfig(_Section):
-    """The SICK LMS 200 and how it is set up (protocol details: specs/lms200-protocol.md)."""
+    """The SICK LMS 200 and how it is set up (protocol details: docs/lms200-protocol.md)."""
 
     field_of_view_deg: Literal[100, 180] = Field(
         100, description="scan variant: 100° (−50…+50°) or 180° (−90…+90°)"
@@ -98,7 +98,7 @@ class ScannerConfig(_Section):
 
 
 class MirrorConfig(_Section):
-    """The rotating mirror in front of the scanner (DESIGN §3, paper eq. 4)."""
+    """The rotating mirror in front of the scanner (docs/design.md §3, paper eq. 4)."""
 
     axis_offset_m: float = Field(
         0.10, gt=0, description="d of eq. 4: scanner origin to mirror axis, along x"
@@ -154,7 +154,8 @@ class MirrorConfig(_Section):
 
 
 class BeaconConfig(_Section):
-    """The retro-reflective cylinder every robot carries, and how it is detected (DESIGN §4)."""
+    """The retro-reflective cylinder every robot carries, and how it is detected (docs/design.md
+    §4)."""
 
     offset_m: float = Field(
         0.25, gt=0, description="d of eq. 1-2: straight ahead of the scanner origin"
@@ -189,7 +190,7 @@ class RobotConfig(_Section):
 
 
 class GridConfig(_Section):
-    """The 3D Bayesian occupancy grid (DESIGN §6, paper eq. 3). Defaults are OctoMap's."""
+    """The 3D Bayesian occupancy grid (docs/design.md §6, paper eq. 3). Defaults are OctoMap's."""
 
     resolution_m: float = Field(0.1, gt=0, le=10)
     prob_hit: float = Field(0.7, gt=0.5, lt=1)
@@ -238,7 +239,7 @@ class BandsConfig(_Section):
 
 
 class SearchConfig(_Section):
-    """The exhaustive (x, y, θ) correlation search (DESIGN §7)."""
+    """The exhaustive (x, y, θ) correlation search (docs/design.md §7)."""
 
     resolution_m: float = Field(0.1, gt=0)
     angular_resolution_deg: float = Field(1.0, gt=0, le=45)
@@ -277,7 +278,7 @@ RobustKernel = Literal["gnc_tls", "huber", "cauchy", "none"]
 
 
 class GraphConfig(_Section):
-    """Noise models and solver settings of the GTSAM pose graph (DESIGN §5)."""
+    """Noise models and solver settings of the GTSAM pose graph (docs/design.md §5)."""
 
     prior_sigma_m: float = Field(0.001, gt=0)
     prior_sigma_deg: float = Field(0.01, gt=0)
@@ -318,7 +319,7 @@ class GraphConfig(_Section):
 
 
 class SimulationConfig(_Section):
-    """Noise and sampling of the simulator (DESIGN §9)."""
+    """Noise and sampling of the simulator (docs/design.md §9)."""
 
     range_sigma_m: float = Field(0.005, ge=0, description="LMS range noise")
     odometry_sigma_m: float = Field(0.005, ge=0, description="per step")
@@ -344,7 +345,7 @@ class SimulationConfig(_Section):
 
 
 class SerialConfig(_Section):
-    """The serial link to a real LMS 200 (specs/lms200-protocol.md §1, §4, §9)."""
+    """The serial link to a real LMS 200 (docs/lms200-protocol.md §1, §4, §9)."""
 
     port: str = Field("/dev/ttyUSB0", min_length=1, description="a device path or pyserial URL")
     baud_rate: Literal[9600, 19200, 38400, 500000] = 38400

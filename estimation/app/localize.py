@@ -3,7 +3,7 @@
 Glue between the configuration, the map_server reader of ``mapping.formats.pgm`` and the search of
 ``estimation.search.exhaustive``: read both grids, search the whole map (or, given a prior position,
 a window around it that grows until the peak is dominant), and report the pose of the scan grid's
-frame in the map frame with the fields of DESIGN §11; optionally draw the position PDF.
+frame in the map frame with the fields of docs/design.md §11; optionally draw the position PDF.
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ class Localization:
     seconds: float  # reading excluded
 
     def as_json(self) -> dict[str, Any]:
-        """DESIGN §11's fields, plus the dominance verdict and the windows searched."""
+        """docs/design.md §11's fields, plus the dominance verdict and the windows searched."""
         x, y, yaw = (float(v) for v in self.result.pose)
         return {
             "x_m": x,

@@ -1,4 +1,4 @@
-"""The result directory of a run (DESIGN §12), written whole or not at all.
+"""The result directory of a run (docs/design.md §12), written whole or not at all.
 
 ``poses/<robot>.tum`` (one line per pose index, stamped when the robot stopped there),
 ``graph.g2o`` (vertices and relative-pose edges with their information; the gauge as FIX),

@@ -1,4 +1,4 @@
-"""What reaches the estimator: a stream of small, immutable events (DESIGN §8).
+"""What reaches the estimator: a stream of small, immutable events (docs/design.md §8).
 
 Robots produce odometry, mutual beacon observations and global-localization results; whether
 they come from a recorded dataset, a simulation or robots over a network, the estimator sees

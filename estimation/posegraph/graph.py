@@ -1,4 +1,4 @@
-"""The pose graph (DESIGN §5): events in, factors and initial values out.
+"""The pose graph (docs/design.md §5): events in, factors and initial values out.
 
 :class:`GraphBuilder` turns the event stream (``estimation.posegraph.events``) into factor
 specifications and initial values, one :class:`Increment` per event. The batch smoother collects

@@ -1,4 +1,4 @@
-"""The one place where pose-graph keys are made (DESIGN §5): ``gtsam.symbol(robot, index)``.
+"""The one place where pose-graph keys are made (docs/design.md §5): ``gtsam.symbol(robot, index)``.
 
 A robot is named by one lowercase letter (``"a"``, ``"b"``, …); its poses are numbered from 0.
 """

@@ -1,4 +1,4 @@
-"""Mutual localization of two robots from each other's beacons (paper §2.1, DESIGN §4).
+"""Mutual localization of two robots from each other's beacons (paper §2.1, docs/design.md §4).
 
 Robot A sees C's beacon at range ``a`` and bearing ``α`` (A's scanner frame); robot C sees A's
 beacon at ``(b, β)`` (C's scanner frame). Each beacon sits ``d`` straight ahead of its robot's

@@ -1,4 +1,4 @@
-"""The seed hook (DESIGN §5): a new station's initial value from a search result.
+"""The seed hook (docs/design.md §5): a new station's initial value from a search result.
 
 A search PDF seeds a station only when its peak is dominant — the best pose beats the best pose
 elsewhere by ``dominance_ratio`` — otherwise the fallback (odometry or mutual localization) is

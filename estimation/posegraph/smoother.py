@@ -4,7 +4,7 @@ Both take their factors from one :class:`~estimation.posegraph.graph.GraphBuilde
 events they solve the same problem and reach the same estimate. Estimates are ``{key: (x, y,
 yaw)}``.
 
-Robust estimation (DESIGN §5): in batch, ``"gnc_tls"`` runs graduated non-convexity with the
+Robust estimation (docs/design.md §5): in batch, ``"gnc_tls"`` runs graduated non-convexity with the
 truncated-least-squares loss (``gtsam.GncLMOptimizer``), with priors and odometry as known
 inliers; a mutual or global factor whose residual stays beyond the χ² quantile ``gnc_probability``
 ends with weight 0. GNC is a batch method: iSAM2 takes a Huber or Cauchy kernel, or none, and

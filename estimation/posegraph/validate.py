@@ -1,4 +1,4 @@
-"""The validator hook (DESIGN §5): optimized stations scored against their search PDFs.
+"""The validator hook (docs/design.md §5): optimized stations scored against their search PDFs.
 
 Each global-localization result keeps its whole pose PDF. After optimization, a station whose
 optimized pose (in the PDF's frame: the map, or the reference station) lies outside the region

@@ -1,4 +1,5 @@
-"""Global localization inside a mission: station maps, ceiling bands, searches (DESIGN §5, §7).
+"""Global localization inside a mission: station maps, ceiling bands, searches (docs/design.md §5,
+§7).
 
 The searches take explicit values: the mission's reference :class:`Station` values (each with
 the :class:`View` values its map is fused from), the current estimate, the graph's factors and
@@ -40,15 +41,15 @@ from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import relative_covariances
+from estimation.search.correlate import correlate_all
 from estimation.search.exhaustive import (
     SearchParams,
     SearchResult,
-    correlate_all,
     overlap_fraction,
-    pose_lattice,
     result_from_scores,
     windowed_search,
 )
+from estimation.search.lattice import pose_lattice
 from mapping.band import Band, extract_band
 from mapping.errors import MapError
 from mapping.fusion import Scan as MapScan

@@ -1,4 +1,4 @@
-"""Rigid transforms as 4×4 homogeneous matrices (DESIGN §2: ``p_a = T_a_b @ p_b``)."""
+"""Rigid transforms as 4×4 homogeneous matrices (docs/design.md §2: ``p_a = T_a_b @ p_b``)."""
 
 from __future__ import annotations
 

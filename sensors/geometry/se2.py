@@ -1,6 +1,6 @@
 """Planar rigid motions on numpy arrays: poses as (..., 3) rows ``x_m, y_m, yaw_rad``.
 
-A pose ``T_a_b`` (DESIGN §2) is the pose of frame b in frame a. Conventions match
+A pose ``T_a_b`` (docs/design.md §2) is the pose of frame b in frame a. Conventions match
 ``gtsam.Pose2``: tangent vectors are ``[v_x, v_y, ω]`` and perturbations act on the right,
 ``T · Exp(ξ)`` (ξ in the body frame), so covariances computed here can be handed to GTSAM noise
 models unchanged. Everything is vectorised over leading axes; nothing here imports gtsam.

@@ -1,4 +1,4 @@
-"""Beacons: retro-reflective cylinders found in a 3D scan, as range and bearing (DESIGN §4).
+"""Beacons: retro-reflective cylinders found in a 3D scan, as range and bearing (docs/design.md §4).
 
 The LMS marks returns from retro-reflectors in its flag bits. Flagged points are clustered in
 the floor plane; a cluster is a beacon when its flagged returns sit in the beacon's height band

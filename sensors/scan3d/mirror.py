@@ -1,4 +1,4 @@
-"""The rotating-mirror 3D scanner (DESIGN §3, the paper's eq. 4 with its typo corrected).
+"""The rotating-mirror 3D scanner (docs/design.md §3, the paper's eq. 4 with its typo corrected).
 
 A planar two-sided mirror turns about an axis parallel to the scanner's y axis, ``d`` in front
 of the scanner origin. A beam of range r and bearing θ meets the mirror at x = d and continues

@@ -1,4 +1,5 @@
-"""Simulated missions: the leapfrog of DESIGN §8, and the dataset a real mission would record.
+"""Simulated missions: the leapfrog of docs/design.md §8, and the dataset a real mission would
+record.
 
 A mission file names a world, the robots and their start poses, and a plan: explicit leapfrog
 steps (a reference robot at a station, a mapper and its scan poses) or ``auto``. The mission
@@ -9,10 +10,10 @@ stop yields a 3D scan and, when the beacons are in view, a mutual observation. R
 the plan says. An optional ``changes`` step then moves the movable objects and each robot scans
 once more, to be globally localized against the map.
 
-The dataset (DESIGN §12) holds what robots would record: each robot's raw LMS byte stream with
-receive stamps (``robots/<name>/lms.cap``), its odometry (``odometry.tum``, noisy, integrated
-per leg), the mission's event log (``events.jsonl``: starts, moves, dwells, roles, changes), and
-the ground truth (``ground_truth/<name>.tum``), plus the world(s) and the effective mission.
+The dataset (docs/design.md §12) holds what robots would record: each robot's raw LMS byte stream
+with receive stamps (``robots/<name>/lms.cap``), its odometry (``odometry.tum``, noisy, integrated
+per leg), the mission's event log (``events.jsonl``: starts, moves, dwells, roles, changes), and the
+ground truth (``ground_truth/<name>.tum``), plus the world(s) and the effective mission.
 """
 
 from __future__ import annotations
@@ -379,7 +380,7 @@ def write_dataset(
     chunk_scans: int = 1500,
     progress: Callable[[str, float], None] | None = None,
 ) -> dict[str, Any]:
-    """Record every robot's sensors over the timeline into ``out_dir`` (DESIGN §12).
+    """Record every robot's sensors over the timeline into ``out_dir`` (docs/design.md §12).
 
     ``scenes(t)`` gives the static world the scanners see at time t (it changes once if the
     mission has a ``changes`` step). Returns counts for the report.

@@ -1,4 +1,4 @@
-"""World descriptions for the simulator (DESIGN §9, file format in DESIGN §12).
+"""World descriptions for the simulator (docs/design.md §9, file format in docs/design.md §12).
 
 A world is a set of rooms — floor polygons extruded from the floor (z = 0) to a ceiling, with
 openings cut into their walls for doors and windows — plus boxes (pillars, furniture, beams,

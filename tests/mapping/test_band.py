@@ -120,7 +120,7 @@ def test_a_column_seen_free_in_few_layers_is_unknown_with_free_min_observed() ->
     assert low.known[5, 7]
     assert low.occupancy[5, 7] == 0.0
     assert not high.known[5, 7]
-    assert default.known[5, 7]  # the DESIGN's plain sum: free
+    assert default.known[5, 7]  # the docs/design.md's plain sum: free
     assert default.occupancy[5, 7] == 0.0
     assert high.known[0, :].all()  # a wall row
     assert (high.occupancy[0, :] == 1.0).all()

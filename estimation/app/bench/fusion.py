@@ -293,7 +293,7 @@ def run_fusion_benchmark(
     repeats: int = 5,
     refusion_scans: int = 200,
 ) -> dict[str, Any]:
-    """Every case, then the re-fusion; top-level figures are the worst case (DESIGN §11)."""
+    """Every case, then the re-fusion; top-level figures are the worst case (docs/design.md §11)."""
     params = grid_params(config.grid)
     cases = [simulated_scan(config)]
     real = real_scan(data_dir)

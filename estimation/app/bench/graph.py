@@ -1,4 +1,5 @@
-"""``coopmap bench graph``: batch and iSAM2 on synthetic and real pose graphs (DESIGN §10–11).
+"""``coopmap bench graph``: batch and iSAM2 on synthetic and real pose graphs (docs/design.md
+§10–11).
 
 Cases:
 
@@ -388,7 +389,7 @@ def run_bench(
     data_dir: Path = DATA_DIR,
     progress: Progress | None = None,
 ) -> dict[str, object]:
-    """Run the cases; the JSON object of DESIGN §11 (top-level figures: the worst case).
+    """Run the cases; the JSON object of docs/design.md §11 (top-level figures: the worst case).
 
     Real-data cases whose file is absent are skipped (listed under ``"skipped"``).
     """

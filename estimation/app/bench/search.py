@@ -1,6 +1,6 @@
 """``coopmap bench search``: the exhaustive search against the paper's per-pose loop, one run.
 
-The map is a synthetic 20 m × 20 m floor of rooms (``search_scenes.random_building``) at the
+The map is a synthetic 20 m × 20 m floor of rooms (``scenes.random_building``) at the
 configured resolution (0.1 m: 200 × 200 cells); the local grid is the band a robot maps within
 8 m of itself, with occupancy noise, flipped and dropped cells. coopmap scores every pose of
 the whole map — 200 × 200 positions × 360 rotations at 1° — and returns the whole normalised
@@ -10,7 +10,7 @@ it is timed on a subset — ``peer_rotations`` rotations spread over the circle,
 ``peer_row_stride``-th row of positions — and extrapolated by the number of poses; its scores
 on that subset are checked against coopmap's.
 
-The best pose alone is timed too: branch and bound (``search_bnb``), exact — its lattice pose
+The best pose alone is timed too: branch and bound (``search.bnb``), exact — its lattice pose
 and score are checked against the full search's — with the pruning it achieved.
 """
 
@@ -24,14 +24,9 @@ from typing import Any
 import numpy as np
 
 from estimation.search.bnb import lattice_best
-from estimation.search.exhaustive import (
-    SearchParams,
-    best_pose,
-    correlate_all,
-    match_values,
-    score_poses_loop,
-    search,
-)
+from estimation.search.correlate import correlate_all, score_poses_loop
+from estimation.search.exhaustive import SearchParams, best_pose, search
+from estimation.search.lattice import match_values
 from estimation.search.scenes import local_view, random_building, rasterise
 
 __all__ = ["run_search_benchmark"]
@@ -51,7 +46,7 @@ def run_search_benchmark(
     seed: int = 0,
 ) -> dict[str, Any]:
     """Time coopmap's search (median of ``repeats`` after a warm-up) and the per-pose loop on a
-    subset of the poses; return the figures of DESIGN §11 and the details."""
+    subset of the poses; return the figures of docs/design.md §11 and the details."""
     rng = np.random.default_rng(seed)
     scene = random_building(rng, MAP_SIDE_M)
     cells = round(MAP_SIDE_M / resolution_m)

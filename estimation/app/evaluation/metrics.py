@@ -1,4 +1,4 @@
-"""Trajectory accuracy: ATE, RPE and the Kümmerle relations metric (DESIGN §12).
+"""Trajectory accuracy: ATE, RPE and the Kümmerle relations metric (docs/design.md §12).
 
 Poses are (N, 3) arrays ``x_m, y_m, yaw_rad``; estimate and reference rows correspond (use
 :func:`associate` for timestamped trajectories). Nothing here imports gtsam.

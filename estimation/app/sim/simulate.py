@@ -1,4 +1,4 @@
-"""``coopmap simulate``: a mission file → a recorded dataset (DESIGN §8, §12).
+"""``coopmap simulate``: a mission file → a recorded dataset (docs/design.md §8, §12).
 
 The app layer resolves the world, merges the configuration (defaults ← the mission's
 ``config:`` ← ``--config``), builds each robot's simulated scanner, plans (``plan: auto``) or

@@ -10,17 +10,9 @@ import pytest
 from estimation.errors import EstimationError
 from estimation.search import bnb as search_bnb
 from estimation.search.bnb import LatticeBest, lattice_best, lattice_scores, pose_bounds
-from estimation.search.exhaustive import (
-    Metric,
-    SearchParams,
-    best_pose,
-    correlate_all,
-    match_values,
-    pose_lattice,
-    score_poses_loop,
-    search,
-    yaw_lattice,
-)
+from estimation.search.correlate import correlate_all, score_poses_loop
+from estimation.search.exhaustive import SearchParams, best_pose, search
+from estimation.search.lattice import Metric, match_values, pose_lattice, yaw_lattice
 from estimation.search.scenes import Scene, corridor, local_view, random_building, rasterise
 from mapping.band import Band
 

@@ -9,21 +9,16 @@ import pytest
 
 from estimation.errors import EstimationError
 from estimation.posepdf import PosePdf
+from estimation.search.correlate import correlate_all, score_poses_loop
 from estimation.search.exhaustive import (
-    Metric,
     SearchParams,
     best_pose,
-    correlate_all,
-    match_values,
-    normalise,
     overlap_fraction,
-    pose_lattice,
-    refine_peak,
-    score_poses_loop,
     search,
     windowed_search,
-    yaw_lattice,
 )
+from estimation.search.lattice import Metric, match_values, pose_lattice, yaw_lattice
+from estimation.search.peak import normalise, refine_peak
 from estimation.search.scenes import (
     corridor,
     distinctive_room,
