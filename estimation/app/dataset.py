@@ -30,7 +30,9 @@ from sensors.errors import SensorError
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureReader
-from sensors.lms200.protocol import ProtocolError, Scan, StreamParser, Telegram, decode_scan
+from sensors.lms200.protocol.scan import Scan, decode_scan
+from sensors.lms200.protocol.stream import StreamParser, Telegram
+from sensors.lms200.protocol.telegram import ProtocolError
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
 from sensors.scan3d.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
 from sensors.trajio import read_tum

@@ -8,7 +8,7 @@ A capture file (``.cap``) is::
 
 where each record is ``stamp_s`` (float64, seconds since the capture started), ``size``
 (uint32), then ``size`` bytes exactly as they came off the port, little-endian. The same
-:class:`~sensors.lms200.protocol.StreamParser` that reads a live port replays a capture.
+:class:`~sensors.lms200.protocol.stream.StreamParser` that reads a live port replays a capture.
 
 A recording is written to ``<name>.partial`` and renamed when it ends, so an existing capture is
 never overwritten and a recording cut short still leaves every complete record readable. Any
@@ -28,15 +28,10 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 from sensors.errors import SensorError
-from sensors.lms200.protocol import (
-    Event,
-    Handshake,
-    ProtocolError,
-    Rejected,
-    StreamParser,
-    decode_reply,
-    decode_scan,
-)
+from sensors.lms200.protocol.replies import decode_reply
+from sensors.lms200.protocol.scan import decode_scan
+from sensors.lms200.protocol.stream import Event, Handshake, Rejected, StreamParser
+from sensors.lms200.protocol.telegram import ProtocolError
 
 __all__ = [
     "CaptureError",

@@ -2,7 +2,7 @@
 
 Ports are opened with ``serial.serial_for_url``, so a device path (``/dev/ttyUSB0``, a pty of
 the emulator), ``socket://host:port`` and ``loop://`` all work. :meth:`Lms200.start` runs the
-sequence of specs/lms200-protocol.md §9: find the sensor's current baud rate, stop a stream
+sequence of docs/lms200-protocol.md §9: find the sensor's current baud rate, stop a stream
 left running, switch to the configured rate (the reply arrives at the old rate), read type,
 status and configuration, write the configuration only when it differs (EEPROM wear) in
 installation mode, set the variant, and start continuous output. :meth:`Lms200.scans` yields
@@ -20,21 +20,30 @@ from dataclasses import dataclass
 import serial
 
 from sensors.errors import DeviceError
-from sensors.lms200 import protocol as p
-from sensors.lms200.protocol import (
-    ConfigReply,
-    Handshake,
+from sensors.lms200.protocol.commands import (
     LmsConfig,
+    cmd_continuous,
+    cmd_installation_mode,
+    cmd_permanent_baud,
+    cmd_read_config,
+    cmd_request_status,
+    cmd_request_type,
+    cmd_set_baud,
+    cmd_stop,
+    cmd_variant,
+    cmd_write_config,
+)
+from sensors.lms200.protocol.replies import (
+    ConfigReply,
     ModeReply,
-    Scan,
     StatusReply,
-    StreamParser,
-    Telegram,
     TypeReply,
     VariantReply,
     decode_reply,
-    decode_scan,
 )
+from sensors.lms200.protocol.scan import Scan, decode_scan
+from sensors.lms200.protocol.stream import Event, Handshake, ParserStats, StreamParser, Telegram
+from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
 
 __all__ = ["Lms200", "SensorInfo"]
 
@@ -81,9 +90,9 @@ class Lms200:
         retries: int = 3,
         tap: Tap | None = None,
     ) -> None:
-        if baud_rate not in p.BAUD_RATES:
-            raise DeviceError(f"baud rate must be one of {p.BAUD_RATES}, got {baud_rate}")
-        p.cmd_variant(angle_deg, resolution_deg)  # validates the variant
+        if baud_rate not in BAUD_RATES:
+            raise DeviceError(f"baud rate must be one of {BAUD_RATES}, got {baud_rate}")
+        cmd_variant(angle_deg, resolution_deg)  # validates the variant
         self.port = port
         self.baud_rate = baud_rate
         self.address = address
@@ -160,7 +169,7 @@ class Lms200:
         except (serial.SerialException, OSError) as exc:
             raise DeviceError(f"{self.port} failed while {doing}: {exc}") from None
 
-    def _read_events(self, doing: str) -> list[p.Event]:
+    def _read_events(self, doing: str) -> list[Event]:
         """Whatever the port has now (waits up to the port's short read timeout)."""
         try:
             chunk = self._port.read(max(1, self._port.in_waiting))
@@ -249,7 +258,7 @@ class Lms200:
             try:
                 # 20 25 is harmless, and stops a stream left running by an earlier client.
                 # Silence means "not this rate"; a NAK means the sensor heard us: retry.
-                self._mode(p.cmd_stop(self.address), "probing the baud rate", retry_silence=False)
+                self._mode(cmd_stop(self.address), "probing the baud rate", retry_silence=False)
                 return rate
             except DeviceError as exc:
                 if "NAKed" in str(exc) or "refused" in str(exc):
@@ -261,7 +270,7 @@ class Lms200:
 
     def set_baud(self, rate: int) -> None:
         """Switch the sensor (reply at the old rate), then the port, then pause."""
-        self._mode(p.cmd_set_baud(rate, self.address), f"switching to {rate} Bd")
+        self._mode(cmd_set_baud(rate, self.address), f"switching to {rate} Bd")
         self._set_port_baud(rate)
         time.sleep(self.baud_switch_wait_s)
 
@@ -273,19 +282,19 @@ class Lms200:
             self.set_baud(self.baud_rate)
         type_reply = decode_reply(
             self._transact(
-                p.cmd_request_type(self.address), 0xBA, "reading the type", self.reply_timeout_s
+                cmd_request_type(self.address), 0xBA, "reading the type", self.reply_timeout_s
             )
         )
         assert isinstance(type_reply, TypeReply)
         status = decode_reply(
             self._transact(
-                p.cmd_request_status(self.address), 0xB1, "reading the status", self.reply_timeout_s
+                cmd_request_status(self.address), 0xB1, "reading the status", self.reply_timeout_s
             )
         )
         assert isinstance(status, StatusReply)
         current = decode_reply(
             self._transact(
-                p.cmd_read_config(self.address),
+                cmd_read_config(self.address),
                 0xF4,
                 "reading the configuration",
                 self.reply_timeout_s,
@@ -305,7 +314,7 @@ class Lms200:
             self.set_variant(self.angle_deg, self.resolution_deg)
         if self.permanent_baud != status.permanent_baud:
             self._transact(
-                p.cmd_permanent_baud(self.permanent_baud, self.address), 0xE6,
+                cmd_permanent_baud(self.permanent_baud, self.address), 0xE6,
                 "setting the permanent baud flag", self.reply_timeout_s,
             )  # fmt: skip
         self.info = SensorInfo(
@@ -319,18 +328,16 @@ class Lms200:
             realtime_indices=wanted.realtime_indices,
             config_written=written,
         )
-        self._mode(p.cmd_continuous(self.address), "starting continuous output")
+        self._mode(cmd_continuous(self.address), "starting continuous output")
         self.streaming = True
         return self.info
 
     def write_config(self, config: LmsConfig) -> None:
         """Installation mode, 77 with all 34 bytes, check the result, back to monitoring."""
-        self._mode(
-            p.cmd_installation_mode(self.password, self.address), "entering installation mode"
-        )
+        self._mode(cmd_installation_mode(self.password, self.address), "entering installation mode")
         reply = decode_reply(
             self._transact(
-                p.cmd_write_config(config, self.address), 0xF7, "writing the configuration",
+                cmd_write_config(config, self.address), 0xF7, "writing the configuration",
                 self.config_write_timeout_s,
             )
         )  # fmt: skip
@@ -339,12 +346,12 @@ class Lms200:
             raise DeviceError(
                 f"{self.port}: the sensor rejected the configuration {config.raw.hex()}"
             )
-        self._mode(p.cmd_stop(self.address), "leaving installation mode")
+        self._mode(cmd_stop(self.address), "leaving installation mode")
 
     def set_variant(self, angle_deg: int, resolution_deg: float) -> None:
         reply = decode_reply(
             self._transact(
-                p.cmd_variant(angle_deg, resolution_deg, self.address), 0xBB,
+                cmd_variant(angle_deg, resolution_deg, self.address), 0xBB,
                 f"switching to the {angle_deg}°/{resolution_deg}° variant", self.reply_timeout_s,
             )
         )  # fmt: skip
@@ -371,7 +378,7 @@ class Lms200:
                 if isinstance(event, Telegram) and event.code == 0xB0:
                     try:
                         scan = decode_scan(event, self.measuring_mode)
-                    except p.ProtocolError:
+                    except ProtocolError:
                         continue  # counted by the caller via the parser; never raised
                     got = True
                     delivered += 1
@@ -389,10 +396,10 @@ class Lms200:
                 )
 
     @property
-    def parser_stats(self) -> p.ParserStats:
+    def parser_stats(self) -> ParserStats:
         return self._parser.stats
 
     def stop(self) -> None:
         """End continuous output (20 25) and wait for the sensor to confirm."""
-        self._mode(p.cmd_stop(self.address), "stopping continuous output")
+        self._mode(cmd_stop(self.address), "stopping continuous output")
         self.streaming = False

@@ -30,8 +30,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from sensors.errors import DeviceError
-from sensors.lms200 import protocol as p
-from sensors.lms200.protocol import LmsConfig, Rejected, StreamParser, Telegram
+from sensors.lms200.protocol.commands import LmsConfig
+from sensors.lms200.protocol.replies import (
+    encode_config_reply,
+    encode_mode_reply,
+    encode_status_reply,
+    encode_variant_reply,
+)
+from sensors.lms200.protocol.scan import encode_scan, scan_interval_s
+from sensors.lms200.protocol.stream import Rejected, StreamParser, Telegram
+from sensors.lms200.protocol.telegram import (
+    ACK,
+    BAUD_RATES,
+    MODE_CONTINUOUS,
+    MODE_INSTALLATION,
+    MODE_ON_REQUEST,
+    MODE_TEST_PASSWORD,
+    NAK,
+    TURN_S,
+    ProtocolError,
+    reply_frame,
+)
 
 __all__ = ["EmulatorState", "Lms200Emulator", "ScanSource"]
 
@@ -50,7 +69,7 @@ class EmulatorState:
     """What the emulated sensor is set to (read it in tests; the emulator thread writes it)."""
 
     baud_rate: int
-    operating_mode: int = p.MODE_ON_REQUEST
+    operating_mode: int = MODE_ON_REQUEST
     angle_deg: int = 180
     resolution_deg: float = 0.5
     config: LmsConfig = LmsConfig.factory()  # noqa: RUF009 - frozen, shared safely
@@ -78,8 +97,8 @@ class Lms200Emulator:
         reply_delay_s: float = 0.005,
         pace: bool = True,
     ) -> None:
-        if power_on_baud not in p.BAUD_RATES:
-            raise DeviceError(f"power-on baud must be one of {p.BAUD_RATES}, got {power_on_baud}")
+        if power_on_baud not in BAUD_RATES:
+            raise DeviceError(f"power-on baud must be one of {BAUD_RATES}, got {power_on_baud}")
         self.scan_source = scan_source
         self.type_text = type_text
         self.password = password
@@ -120,7 +139,7 @@ class Lms200Emulator:
         self._t0 = time.monotonic()
         self._tx_time = self._t0
         if self._power_on_message:
-            self._schedule(self.boot_s, p.reply_frame(0x90, self.type_text.encode("ascii")))
+            self._schedule(self.boot_s, reply_frame(0x90, self.type_text.encode("ascii")))
         self._thread = threading.Thread(target=self._run, name="lms200-emulator", daemon=True)
         self._thread.start()
         return self.device_path
@@ -261,7 +280,7 @@ class Lms200Emulator:
         for event in self._parser.feed(data):
             if isinstance(event, Rejected):
                 self._interrupt()
-                self._send(bytes((p.NAK,)))
+                self._send(bytes((NAK,)))
                 self.state.naks_sent += 1
             elif isinstance(event, Telegram):
                 if event.addr not in (0x00, self.address):
@@ -269,11 +288,11 @@ class Lms200Emulator:
                 self._interrupt()
                 if self.nak_next > 0:
                     self.nak_next -= 1
-                    self._send(bytes((p.NAK,)))
+                    self._send(bytes((NAK,)))
                     self.state.naks_sent += 1
                     continue
                 self.state.commands += 1
-                self._send(bytes((p.ACK,)))
+                self._send(bytes((ACK,)))
                 self._handle(event)
 
     def _interrupt(self) -> None:
@@ -290,14 +309,14 @@ class Lms200Emulator:
     def _handle(self, telegram: Telegram) -> None:
         code, data, state = telegram.code, telegram.data, self.state
         if code == 0x10:
-            self._reply(p.reply_frame(0x91), then=self._reset)
+            self._reply(reply_frame(0x91), then=self._reset)
         elif code == 0x20 and data:
             self._switch_mode(data[0], data[1:])
         elif code == 0x30 and data[:1] == b"\x01":
             self._reply(self._scan_telegram(self.time_s))
         elif code == 0x31:
             self._reply(
-                p.encode_status_reply(
+                encode_status_reply(
                     operating_mode=state.operating_mode,
                     measuring_mode=state.config.measuring_mode,
                     angle_deg=state.angle_deg,
@@ -309,50 +328,50 @@ class Lms200Emulator:
                 )
             )
         elif code == 0x32:
-            self._reply(p.reply_frame(0xB2, bytes(2)))
+            self._reply(reply_frame(0xB2, bytes(2)))
         elif code == 0x3A:
-            self._reply(p.reply_frame(0xBA, self.type_text.encode("ascii")))
+            self._reply(reply_frame(0xBA, self.type_text.encode("ascii")))
         elif code == 0x3B and len(data) == 4:
             self._switch_variant(
                 int.from_bytes(data[:2], "little"), int.from_bytes(data[2:], "little")
             )
         elif code == 0x66 and len(data) == 1:
             state.permanent_baud = data[0] == 1
-            self._reply(p.reply_frame(0xE6, bytes((1, data[0]))))
+            self._reply(reply_frame(0xE6, bytes((1, data[0]))))
         elif code == 0x74:
-            self._reply(p.encode_config_reply(state.config))
+            self._reply(encode_config_reply(state.config))
         elif code == 0x77:
-            accepted = state.operating_mode == p.MODE_INSTALLATION and len(data) == 34
+            accepted = state.operating_mode == MODE_INSTALLATION and len(data) == 34
             if accepted:
                 try:
                     state.config = LmsConfig(bytes(data))
-                except p.ProtocolError:
+                except ProtocolError:
                     accepted = False
-            self._reply(p.encode_config_reply(state.config, write_result=accepted), delay=0.05)
+            self._reply(encode_config_reply(state.config, write_result=accepted), delay=0.05)
         else:
-            self._reply(p.reply_frame(0x92))
+            self._reply(reply_frame(0x92))
 
     def _switch_mode(self, sub_mode: int, params: bytes) -> None:
         state = self.state
-        if sub_mode in (p.MODE_INSTALLATION, p.MODE_TEST_PASSWORD):
+        if sub_mode in (MODE_INSTALLATION, MODE_TEST_PASSWORD):
             ok = params == self.password.encode("ascii")
-            if ok and sub_mode == p.MODE_INSTALLATION:
+            if ok and sub_mode == MODE_INSTALLATION:
                 state.streaming = False
-                state.operating_mode = p.MODE_INSTALLATION
-            self._reply(p.encode_mode_reply(0 if ok else 1))
-        elif sub_mode == p.MODE_CONTINUOUS:
+                state.operating_mode = MODE_INSTALLATION
+            self._reply(encode_mode_reply(0 if ok else 1))
+        elif sub_mode == MODE_CONTINUOUS:
             state.operating_mode = sub_mode
-            self._reply(p.encode_mode_reply(0), then=self._start_stream)
-        elif sub_mode == p.MODE_ON_REQUEST:
+            self._reply(encode_mode_reply(0), then=self._start_stream)
+        elif sub_mode == MODE_ON_REQUEST:
             state.operating_mode = sub_mode
             state.streaming = False
-            self._reply(p.encode_mode_reply(0))
+            self._reply(encode_mode_reply(0))
         elif sub_mode in _MODE_BY_BAUD_CODE:
             new_rate = _MODE_BY_BAUD_CODE[sub_mode]
             # The reply goes out at the old rate; the sensor switches afterwards (§10).
-            self._reply(p.encode_mode_reply(0), then=lambda: self._set_baud_after_reply(new_rate))
+            self._reply(encode_mode_reply(0), then=lambda: self._set_baud_after_reply(new_rate))
         else:
-            self._reply(p.reply_frame(0x92))
+            self._reply(reply_frame(0x92))
 
     def _set_baud_after_reply(self, rate: int) -> None:
         def switch() -> None:
@@ -369,23 +388,23 @@ class Lms200Emulator:
         if ok:
             state.angle_deg, state.resolution_deg = angle_deg, resolution
             state.streaming = False  # a variant change stops the stream (§5.3)
-            if state.operating_mode == p.MODE_CONTINUOUS:
-                state.operating_mode = p.MODE_ON_REQUEST
-        self._reply(p.encode_variant_reply(ok, state.angle_deg, state.resolution_deg))
+            if state.operating_mode == MODE_CONTINUOUS:
+                state.operating_mode = MODE_ON_REQUEST
+        self._reply(encode_variant_reply(ok, state.angle_deg, state.resolution_deg))
 
     def _reset(self) -> None:
         state = self.state
         state.streaming = False
-        state.operating_mode = p.MODE_ON_REQUEST
+        state.operating_mode = MODE_ON_REQUEST
         if not state.permanent_baud:
             state.baud_rate = self._power_on_baud
-        self._schedule(self.boot_s, p.reply_frame(0x90, self.type_text.encode("ascii")))
+        self._schedule(self.boot_s, reply_frame(0x90, self.type_text.encode("ascii")))
 
     def _start_stream(self) -> None:
         self.state.streaming = True
         # Telegrams start at mirror-turn boundaries: the next turn after now.
-        self._turn = int(self.time_s / p.TURN_S) + 1
-        self._next_scan = self._t0 + self._turn * p.TURN_S
+        self._turn = int(self.time_s / TURN_S) + 1
+        self._next_scan = self._t0 + self._turn * TURN_S
 
     # ---------------------------------------------------------------------------------------
     # Measured values
@@ -397,9 +416,9 @@ class Lms200Emulator:
         state = self.state
         count = self._count()
         ranges, flags = self.scan_source(t_s, count)
-        turn = round(t_s / p.TURN_S) if turn is None else turn
+        turn = round(t_s / TURN_S) if turn is None else turn
         indices = state.config.realtime_indices
-        return p.encode_scan(
+        return encode_scan(
             np.asarray(ranges, dtype=float)[:count],
             flags=np.asarray(flags)[:count],
             measuring_mode=state.config.measuring_mode,
@@ -410,16 +429,16 @@ class Lms200Emulator:
 
     def _emit_scan(self, now: float) -> None:
         state = self.state
-        interval = p.scan_interval_s(
+        interval = scan_interval_s(
             state.baud_rate, self._count(), state.resolution_deg, state.config.realtime_indices
         )
-        turns = round(interval / p.TURN_S)
+        turns = round(interval / TURN_S)
         if not self._out:  # else still sending the previous telegram: this scan is lost (§8)
-            self._send(self._scan_telegram(self._turn * p.TURN_S, self._turn))
+            self._send(self._scan_telegram(self._turn * TURN_S, self._turn))
             self._out_is_scan = True
             state.scans_sent += 1
         self._turn += turns
-        if self._t0 + self._turn * p.TURN_S < now - 1.0:
+        if self._t0 + self._turn * TURN_S < now - 1.0:
             # Fell far behind (a stalled process): skip ahead rather than burst.
-            self._turn = int((now - self._t0) / p.TURN_S) + 1
-        self._next_scan = self._t0 + self._turn * p.TURN_S
+            self._turn = int((now - self._t0) / TURN_S) + 1
+        self._next_scan = self._t0 + self._turn * TURN_S

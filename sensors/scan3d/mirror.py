@@ -28,7 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sensors.errors import SensorError
-from sensors.lms200.protocol import TURN_S, Scan
+from sensors.lms200.protocol.scan import Scan
+from sensors.lms200.protocol.telegram import TURN_S
 
 __all__ = [
     "MirrorEstimate",

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from sensors.errors import SensorError
-from sensors.lms200 import protocol as p
+from sensors.lms200.protocol.scan import SpecialCode, encode_scan, scan_interval_s
+from sensors.lms200.protocol.telegram import TURN_S
 from sensors.scan3d.mirror import MirrorGeometry
 from sensors.sim.scene import RaycastScene
 from sensors.sim.world import World, world_from_mapping
@@ -76,11 +77,11 @@ def world_with_robots(
 def telegram_times(start_s: float, duration_s: float, baud_rate: int, count: int,
                    resolution_deg: float, indices: bool = True) -> np.ndarray:  # fmt: skip
     """When the measured-value telegrams of continuous output start (mirror-turn boundaries)."""
-    interval = p.scan_interval_s(baud_rate, count, resolution_deg, indices)
-    turns = round(interval / p.TURN_S)
-    first = math.ceil(start_s / p.TURN_S - 1e-9)
+    interval = scan_interval_s(baud_rate, count, resolution_deg, indices)
+    turns = round(interval / TURN_S)
+    first = math.ceil(start_s / TURN_S - 1e-9)
     n = max(0, math.floor(duration_s / interval))
-    return (first + turns * np.arange(n)) * p.TURN_S
+    return (first + turns * np.arange(n)) * TURN_S
 
 
 @dataclass(frozen=True)
@@ -228,7 +229,7 @@ class SimulatedScanner:
         hit[arm_cells] = True
         flags[arm_cells] = 0
 
-        codes[~hit] = p.SpecialCode.NO_RETURN
+        codes[~hit] = SpecialCode.NO_RETURN
         ranges[~hit] = np.nan
         blocked = by_edge | arm_cells | ~hit
         truth[blocked] = np.nan
@@ -311,8 +312,8 @@ def scan_stream(
     """
     chunks = []
     for k, t in enumerate(scans.times_s):
-        turn = round(t / p.TURN_S)
-        telegram = p.encode_scan(
+        turn = round(t / TURN_S)
+        telegram = encode_scan(
             scans.ranges_m[k],
             flags=scans.flags[k],
             codes=scans.codes[k],
@@ -321,6 +322,6 @@ def scan_stream(
             scan_index=turn & 0xFF,
             telegram_index=k & 0xFF,
         )
-        arrival = t + p.TURN_S + len(telegram) * 10.0 / baud_rate + latency_s + clock_offset_s
+        arrival = t + TURN_S + len(telegram) * 10.0 / baud_rate + latency_s + clock_offset_s
         chunks.append((arrival, telegram))
     return chunks

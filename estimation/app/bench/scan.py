@@ -19,7 +19,8 @@ from estimation.app.config import Config
 from estimation.app.resources import resolve_builtin
 from estimation.app.rig import mirror_geometry, simulated_scanner
 from sensors.geometry.frames import scanner_pose_matrix
-from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
+from sensors.lms200.protocol.scan import decode_scan
+from sensors.lms200.protocol.stream import StreamParser, Telegram
 from sensors.scan3d.mirror import assemble_sweeps, estimate_mirror, scan_times
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import scan_stream, telegram_times

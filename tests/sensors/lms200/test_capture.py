@@ -10,16 +10,19 @@ import pytest
 from typer.testing import CliRunner
 
 from estimation.app.cli.main import app
-from sensors.lms200 import protocol as p
 from sensors.lms200.capture import CaptureError, CaptureReader, CaptureWriter, decode_stream
+from sensors.lms200.protocol.commands import cmd_stop
+from sensors.lms200.protocol.replies import encode_mode_reply
+from sensors.lms200.protocol.scan import SpecialCode, encode_scan
+from sensors.lms200.protocol.telegram import reply_frame
 
-SCAN = p.encode_scan(np.linspace(0.5, 7.5, 101), flags=np.arange(101) % 8, scan_index=6)
-TYPE = p.reply_frame(0xBA, b"LMS200;301063;V02.10 ")
+SCAN = encode_scan(np.linspace(0.5, 7.5, 101), flags=np.arange(101) % 8, scan_index=6)
+TYPE = reply_frame(0xBA, b"LMS200;301063;V02.10 ")
 
 
 def write_capture(path: Path) -> Path:
     with CaptureWriter(path, {"port": "test", "baud_rate": 38400}) as writer:
-        writer.write(0.0, b"\x06" + p.encode_mode_reply(0))
+        writer.write(0.0, b"\x06" + encode_mode_reply(0))
         writer.write(0.08, SCAN[:100])
         writer.write(0.09, SCAN[100:])
         writer.write(0.2, b"junk" + TYPE)
@@ -34,9 +37,7 @@ def test_capture_round_trip_keeps_bytes_and_stamps(tmp_path: Path) -> None:
     assert reader.header["baud_rate"] == 38400
     chunks = list(reader.chunks())
     assert [s for s, _ in chunks] == [0.0, 0.08, 0.09, 0.2]
-    assert (
-        b"".join(c for _, c in chunks) == b"\x06" + p.encode_mode_reply(0) + SCAN + b"junk" + TYPE
-    )
+    assert b"".join(c for _, c in chunks) == b"\x06" + encode_mode_reply(0) + SCAN + b"junk" + TYPE
     assert not (tmp_path / "run.cap.partial").exists()
 
 
@@ -62,12 +63,12 @@ def test_plain_dump_with_invalid_values_and_bad_checksum(tmp_path: Path) -> None
     bad = bytearray(TYPE)
     bad[10] ^= 0x01
     dump = tmp_path / "dump.bin"
-    dump.write_bytes(p.cmd_stop() + p.encode_scan(ranges) + bytes(bad) + SCAN[:30])
+    dump.write_bytes(cmd_stop() + encode_scan(ranges) + bytes(bad) + SCAN[:30])
     records, summary = decode_stream(CaptureReader(dump))
     records = list(records)
     assert [r["kind"] for r in records] == ["command", "scan", "bad_checksum"]
     assert records[1]["ranges_m"][5] is None
-    assert records[1]["codes"][5] == p.SpecialCode.NO_RETURN
+    assert records[1]["codes"][5] == SpecialCode.NO_RETURN
     assert records[2]["crc_ok"] is False
     assert summary.checksum_failures == 1
     assert summary.bytes_skipped == len(bad) + 30

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from sensors.errors import DeviceError
-from sensors.lms200 import protocol as p
 from sensors.lms200.driver import Lms200
 from sensors.lms200.emulator import Lms200Emulator
+from sensors.lms200.protocol.commands import cmd_mode, cmd_request_type
+from sensors.lms200.protocol.stream import StreamParser, Telegram
+from sensors.lms200.protocol.telegram import ProtocolError
 
 
 def ramp(t_s: float, count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -104,7 +106,7 @@ def test_persistent_naks_are_a_clear_error(emulator: Lms200Emulator) -> None:
     with pytest.raises(
         DeviceError, match=r"the sensor NAKed it while reading the type \(3 tries at 9600 Bd\)"
     ):
-        driver._transact(p.cmd_request_type(), 0xBA, "reading the type", 0.5)
+        driver._transact(cmd_request_type(), 0xBA, "reading the type", 0.5)
     emulator.nak_next = 10
     with pytest.raises(
         DeviceError, match=r"the sensor NAKed it while probing the baud rate \(3 tries at 9600 Bd\)"
@@ -166,13 +168,13 @@ def test_refused_command_and_unopenable_ports(emulator: Lms200Emulator) -> None:
     with pytest.raises(
         DeviceError, match=r"refused the command while entering diagnostics \(reply 92"
     ):
-        driver._mode(p.cmd_mode(0x10), "entering diagnostics")
+        driver._mode(cmd_mode(0x10), "entering diagnostics")
     driver.close()
     with pytest.raises(DeviceError, match="cannot open /dev/nonexistent-lms"):
         Lms200("/dev/nonexistent-lms").open()
     with pytest.raises(DeviceError, match="baud rate must be one of"):
         Lms200("loop://", baud_rate=115200)
-    with pytest.raises(p.ProtocolError, match="no LMS 200 variant"):
+    with pytest.raises(ProtocolError, match="no LMS 200 variant"):
         Lms200("loop://", angle_deg=180, resolution_deg=0.25)
     with pytest.raises(DeviceError, match="not streaming; call start"):
         next(Lms200("loop://").scans())
@@ -194,7 +196,7 @@ def test_tap_sees_every_byte(emulator: Lms200Emulator) -> None:
     list(driver.scans(limit=3))
     driver.stop()
     driver.close()
-    parser = p.StreamParser()
-    telegrams = [e for e in parser.feed(bytes(seen)) if isinstance(e, p.Telegram)]
+    parser = StreamParser()
+    telegrams = [e for e in parser.feed(bytes(seen)) if isinstance(e, Telegram)]
     assert sum(t.code == 0xB0 for t in telegrams) >= 3
     assert {0xA0, 0xBA, 0xB1, 0xF4} <= {t.code for t in telegrams}

@@ -10,64 +10,86 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sensors.lms200 import protocol as p
-from sensors.lms200.protocol import (
-    Handshake,
+from sensors.lms200.protocol.commands import (
     LmsConfig,
-    ProtocolError,
-    SpecialCode,
-    StreamParser,
-    Telegram,
-    checksum,
-    decode_reply,
-    decode_scan,
-    encode_scan,
+    cmd_continuous,
+    cmd_installation_mode,
+    cmd_permanent_baud,
+    cmd_read_config,
+    cmd_request_errors,
+    cmd_request_scan,
+    cmd_request_status,
+    cmd_request_type,
+    cmd_reset,
+    cmd_set_baud,
+    cmd_stop,
+    cmd_variant,
+    cmd_write_config,
 )
+from sensors.lms200.protocol.replies import (
+    ConfigReply,
+    IncorrectCommand,
+    ModeReply,
+    PowerOn,
+    Reply,
+    ResetAck,
+    StatusReply,
+    TypeReply,
+    VariantReply,
+    decode_reply,
+    encode_config_reply,
+    encode_mode_reply,
+    encode_status_reply,
+    encode_variant_reply,
+)
+from sensors.lms200.protocol.scan import SpecialCode, decode_scan, encode_scan, scan_interval_s
+from sensors.lms200.protocol.stream import Handshake, StreamParser, Telegram
+from sensors.lms200.protocol.telegram import MAX_LEN, ProtocolError, checksum, frame, reply_frame
 
 
 def h(text: str) -> bytes:
     return bytes.fromhex(text)
 
 
-#: Every verified telegram of specs/lms200-protocol.md §3.3–3.4 and the encoder that builds it.
+#: Every verified telegram of docs/lms200-protocol.md §3.3–3.4 and the encoder that builds it.
 VERIFIED = [
-    ("02 00 01 00 31 15 12", p.cmd_request_status()),
-    ("02 00 0A 00 20 00 53 49 43 4B 5F 4C 4D 53 BE C5", p.cmd_installation_mode("SICK_LMS")),
-    ("02 80 03 00 A0 00 10 16 0A", p.encode_mode_reply(0)),
-    ("02 00 05 00 3B B4 00 32 00 3B 1F", p.cmd_variant(180, 0.5)),
-    ("02 80 07 00 BB 01 B4 00 32 00 10 03 9D", p.encode_variant_reply(True, 180, 0.5)),
-    ("02 00 02 00 30 01 31 18", p.cmd_request_scan(0x01)),
-    ("02 00 01 00 10 34 12", p.cmd_reset()),
-    ("02 00 01 00 32 16 12", p.cmd_request_errors()),
-    ("02 00 01 00 3A 1E 12", p.cmd_request_type()),
-    ("02 00 01 00 74 50 12", p.cmd_read_config()),
-    ("02 00 02 00 20 24 34 08", p.cmd_continuous()),
-    ("02 00 02 00 20 25 35 08", p.cmd_stop()),
-    ("02 00 02 00 20 40 50 08", p.cmd_set_baud(38400)),
-    ("02 00 02 00 20 41 51 08", p.cmd_set_baud(19200)),
-    ("02 00 02 00 20 42 52 08", p.cmd_set_baud(9600)),
-    ("02 00 02 00 20 48 58 08", p.cmd_set_baud(500000)),
-    ("02 00 05 00 3B 64 00 64 00 1D 0F", p.cmd_variant(100, 1.0)),
-    ("02 00 05 00 3B 64 00 32 00 B1 59", p.cmd_variant(100, 0.5)),
-    ("02 00 05 00 3B 64 00 19 00 E7 72", p.cmd_variant(100, 0.25)),
-    ("02 00 05 00 3B B4 00 64 00 97 49", p.cmd_variant(180, 1.0)),
-    ("02 00 05 00 3B B4 00 32 00 3B 1F", p.cmd_variant(180, 0.5)),
-    ("02 00 02 00 66 01 9D 4E", p.cmd_permanent_baud(True)),
-    ("02 00 02 00 66 00 9C 4E", p.cmd_permanent_baud(False)),
-    ("02 80 02 00 91 10 79 30", p.reply_frame(0x91)),
-    ("02 80 02 00 92 10 7F 33", p.reply_frame(0x92)),
+    ("02 00 01 00 31 15 12", cmd_request_status()),
+    ("02 00 0A 00 20 00 53 49 43 4B 5F 4C 4D 53 BE C5", cmd_installation_mode("SICK_LMS")),
+    ("02 80 03 00 A0 00 10 16 0A", encode_mode_reply(0)),
+    ("02 00 05 00 3B B4 00 32 00 3B 1F", cmd_variant(180, 0.5)),
+    ("02 80 07 00 BB 01 B4 00 32 00 10 03 9D", encode_variant_reply(True, 180, 0.5)),
+    ("02 00 02 00 30 01 31 18", cmd_request_scan(0x01)),
+    ("02 00 01 00 10 34 12", cmd_reset()),
+    ("02 00 01 00 32 16 12", cmd_request_errors()),
+    ("02 00 01 00 3A 1E 12", cmd_request_type()),
+    ("02 00 01 00 74 50 12", cmd_read_config()),
+    ("02 00 02 00 20 24 34 08", cmd_continuous()),
+    ("02 00 02 00 20 25 35 08", cmd_stop()),
+    ("02 00 02 00 20 40 50 08", cmd_set_baud(38400)),
+    ("02 00 02 00 20 41 51 08", cmd_set_baud(19200)),
+    ("02 00 02 00 20 42 52 08", cmd_set_baud(9600)),
+    ("02 00 02 00 20 48 58 08", cmd_set_baud(500000)),
+    ("02 00 05 00 3B 64 00 64 00 1D 0F", cmd_variant(100, 1.0)),
+    ("02 00 05 00 3B 64 00 32 00 B1 59", cmd_variant(100, 0.5)),
+    ("02 00 05 00 3B 64 00 19 00 E7 72", cmd_variant(100, 0.25)),
+    ("02 00 05 00 3B B4 00 64 00 97 49", cmd_variant(180, 1.0)),
+    ("02 00 05 00 3B B4 00 32 00 3B 1F", cmd_variant(180, 0.5)),
+    ("02 00 02 00 66 01 9D 4E", cmd_permanent_baud(True)),
+    ("02 00 02 00 66 00 9C 4E", cmd_permanent_baud(False)),
+    ("02 80 02 00 91 10 79 30", reply_frame(0x91)),
+    ("02 80 02 00 92 10 7F 33", reply_frame(0x92)),
     (
         "02 80 17 00 BA 4C 4D 53 32 30 30 3B 33 30 31 30 36 33 3B 56 30 32 2E 31 30 20 10 22 61",
-        p.reply_frame(0xBA, b"LMS200;301063;V02.10 "),
+        reply_frame(0xBA, b"LMS200;301063;V02.10 "),
     ),
     (
         "02 80 17 00 90 4C 4D 53 32 30 30 3B 33 30 31 30 36 33 3B 56 30 32 2E 31 30 20 10 63 5E",
-        p.reply_frame(0x90, b"LMS200;301063;V02.10 "),
+        reply_frame(0x90, b"LMS200;301063;V02.10 "),
     ),
     (
         "02 00 23 00 77 00 00 46 00 00 00 01 00 00 02 02 02 00 00 0A 0A 50 64 00 0A 0A 50 80 00"
         " 0A 0A 50 64 00 00 00 00 02 00 7B 4B",
-        p.cmd_write_config(LmsConfig.factory()),
+        cmd_write_config(LmsConfig.factory()),
     ),
 ]
 
@@ -107,48 +129,48 @@ def test_manual_misprints_are_rejected_as_bad_checksums() -> None:
 
 
 def test_decode_replies() -> None:
-    def decoded(raw: bytes) -> p.Reply:
+    def decoded(raw: bytes) -> Reply:
         (telegram,) = StreamParser().feed(raw)
         assert isinstance(telegram, Telegram)
         return decode_reply(telegram)
 
-    mode = decoded(p.encode_mode_reply(1))
-    assert isinstance(mode, p.ModeReply)
+    mode = decoded(encode_mode_reply(1))
+    assert isinstance(mode, ModeReply)
     assert not mode.ok
     assert mode.result == 1
-    variant = decoded(p.encode_variant_reply(True, 100, 0.25))
-    assert isinstance(variant, p.VariantReply)
+    variant = decoded(encode_variant_reply(True, 100, 0.25))
+    assert isinstance(variant, VariantReply)
     assert (variant.ok, variant.angle_deg, variant.resolution_deg) == (True, 100, 0.25)
-    kind = decoded(p.reply_frame(0xBA, b"LMS200;301063;V02.10 "))
-    assert isinstance(kind, p.TypeReply)
+    kind = decoded(reply_frame(0xBA, b"LMS200;301063;V02.10 "))
+    assert isinstance(kind, TypeReply)
     assert kind.text == "LMS200;301063;V02.10 "
-    power = decoded(p.reply_frame(0x90, b"LMS200;301063;V02.10 "))
-    assert isinstance(power, p.PowerOn)
+    power = decoded(reply_frame(0x90, b"LMS200;301063;V02.10 "))
+    assert isinstance(power, PowerOn)
     assert power.text.startswith("LMS200")
-    assert isinstance(decoded(p.reply_frame(0x91)), p.ResetAck)
-    assert isinstance(decoded(p.reply_frame(0x92)), p.IncorrectCommand)
+    assert isinstance(decoded(reply_frame(0x91)), ResetAck)
+    assert isinstance(decoded(reply_frame(0x92)), IncorrectCommand)
     config = LmsConfig.factory().with_changes(measuring_mode=1, realtime_indices=True)
-    read = decoded(p.encode_config_reply(config))
-    assert isinstance(read, p.ConfigReply)
+    read = decoded(encode_config_reply(config))
+    assert isinstance(read, ConfigReply)
     assert read.config == config
     assert read.config.realtime_indices
-    written = decoded(p.encode_config_reply(config, write_result=False))
-    assert isinstance(written, p.ConfigReply)
+    written = decoded(encode_config_reply(config, write_result=False))
+    assert isinstance(written, ConfigReply)
     assert written.name == "config_write"
     assert not written.ok
     status = decoded(
-        p.encode_status_reply(angle_deg=100, resolution_deg=1.0, baud_rate=38400, measuring_mode=1)
+        encode_status_reply(angle_deg=100, resolution_deg=1.0, baud_rate=38400, measuring_mode=1)
     )
-    assert isinstance(status, p.StatusReply)
+    assert isinstance(status, StatusReply)
     assert (status.angle_deg, status.resolution_deg, status.baud_rate) == (100, 1.0, 38400)
     assert status.measuring_mode == 1
     assert status.version == "V02.10 "
-    generic = decoded(p.reply_frame(0xB2, b"\x00\x00"))
-    assert type(generic) is p.Reply
+    generic = decoded(reply_frame(0xB2, b"\x00\x00"))
+    assert type(generic) is Reply
 
 
 def test_decode_reply_rejects_short_and_misrouted_replies() -> None:
-    (short,) = StreamParser().feed(p.reply_frame(0xBB, b"\x01"))
+    (short,) = StreamParser().feed(reply_frame(0xBB, b"\x01"))
     assert isinstance(short, Telegram)
     with pytest.raises(ProtocolError, match=r"variant reply \(0xbb\) too short: 1 bytes"):
         decode_reply(short)
@@ -176,13 +198,13 @@ def test_config_block_fields() -> None:
 @pytest.mark.parametrize(
     ("call", "message"),
     [
-        (lambda: p.cmd_set_baud(115200), r"talks at \(9600, 19200, 38400, 500000\) Bd, not 115200"),
-        (lambda: p.cmd_variant(180, 0.25), r"no LMS 200 variant 180°/0\.25°"),
-        (lambda: p.cmd_installation_mode("SHORT"), r"8 ASCII characters, got 'SHORT'"),
-        (lambda: p.frame(0x90), r"host command codes are 00-8F, got 0x90"),
-        (lambda: p.reply_frame(0x10), r"reply codes are 90-FF, got 0x10"),
-        (lambda: p.frame(0x20, bytes(900)), r"telegram body must be 1-812 bytes, got 901"),
-        (lambda: p.frame(0x20, addr=300), r"address must be 0-255, got 300"),
+        (lambda: cmd_set_baud(115200), r"talks at \(9600, 19200, 38400, 500000\) Bd, not 115200"),
+        (lambda: cmd_variant(180, 0.25), r"no LMS 200 variant 180°/0\.25°"),
+        (lambda: cmd_installation_mode("SHORT"), r"8 ASCII characters, got 'SHORT'"),
+        (lambda: frame(0x90), r"host command codes are 00-8F, got 0x90"),
+        (lambda: reply_frame(0x10), r"reply codes are 90-FF, got 0x10"),
+        (lambda: frame(0x20, bytes(900)), r"telegram body must be 1-812 bytes, got 901"),
+        (lambda: frame(0x20, addr=300), r"address must be 0-255, got 300"),
         (lambda: StreamParser("sideways"), r"direction must be one of"),
     ],
 )  # fmt: skip
@@ -316,7 +338,7 @@ def test_decode_scan_rejects_other_replies_and_modes() -> None:
 def test_scan_rates_match_the_manual(
     baud: int, count: int, resolution: float, rate_hz: float
 ) -> None:
-    interval = p.scan_interval_s(baud, count, resolution, indices=False)
+    interval = scan_interval_s(baud, count, resolution, indices=False)
     assert 1.0 / interval == pytest.approx(rate_hz, abs=0.08)  # the manual rounds 75.08 to 75
 
 
@@ -326,9 +348,9 @@ def test_scan_rates_match_the_manual(
 
 def test_parser_resyncs_after_garbage_bad_checksum_truncation_and_absurd_length() -> None:
     good = [
-        p.encode_mode_reply(0),
+        encode_mode_reply(0),
         encode_scan(np.full(101, 1.5)),
-        p.encode_variant_reply(True, 100, 1.0),
+        encode_variant_reply(True, 100, 1.0),
     ]
     corrupt = bytearray(good[1])
     corrupt[40] ^= 0xFF  # bad checksum
@@ -352,7 +374,7 @@ def test_parser_resyncs_after_garbage_bad_checksum_truncation_and_absurd_length(
 def test_a_false_start_does_not_hold_back_a_reply() -> None:
     # A stray `02 80` with a plausible length (515) before a complete reply: the reply must be
     # delivered now — a driver waiting for it would otherwise time out — and at end of stream.
-    reply = p.encode_mode_reply(0)
+    reply = encode_mode_reply(0)
     parser = StreamParser()
     events = parser.feed(b"\x02\x80\x03\x02" + reply)
     assert [e.raw for e in events if isinstance(e, Telegram)] == [reply]
@@ -363,7 +385,7 @@ def test_a_false_start_does_not_hold_back_a_reply() -> None:
 
 
 def test_close_rescans_what_it_holds() -> None:
-    reply = p.encode_mode_reply(0)
+    reply = encode_mode_reply(0)
     parser = StreamParser()
     parser.feed(b"\x02\x80\xff\x01" + reply[:-1])  # false start, then a truncated reply
     assert parser.close() == []
@@ -371,13 +393,13 @@ def test_close_rescans_what_it_holds() -> None:
 
 
 def test_parser_handles_one_byte_chunks_and_reports_offsets() -> None:
-    frames = [p.encode_mode_reply(0), b"\x06", encode_scan(np.full(101, 2.0))]
+    frames = [encode_mode_reply(0), b"\x06", encode_scan(np.full(101, 2.0))]
     stream = b"".join(frames)
     parser = StreamParser()
     events = []
     for k in range(len(stream)):
         events += parser.feed(stream[k : k + 1], stamp_s=float(k))
-        assert parser.pending <= p.MAX_LEN + 6
+        assert parser.pending <= MAX_LEN + 6
     assert [type(e) for e in events] == [Telegram, Handshake, Telegram]
     assert [e.offset for e in events] == [0, 9, 10]
     assert events[2].stamp_s == len(stream) - 1  # the chunk that completed it
@@ -386,7 +408,7 @@ def test_parser_handles_one_byte_chunks_and_reports_offsets() -> None:
 
 
 def test_parser_direction_filters_and_close_counts_the_remainder() -> None:
-    command, reply = p.cmd_stop(), p.encode_mode_reply(0)
+    command, reply = cmd_stop(), encode_mode_reply(0)
     to_sensor = StreamParser("to_sensor")
     assert [t.raw for t in to_sensor.feed(command + reply) if isinstance(t, Telegram)] == [command]
     from_sensor = StreamParser("from_sensor")
@@ -412,11 +434,11 @@ def telegram_streams(draw: st.DrawFn) -> tuple[list[bytes], bytes, list[int]]:
                 np.array(values), flags=np.zeros(count), scan_index=draw(st.integers(0, 255))
             )
         elif kind == "mode":
-            raw = p.encode_mode_reply(draw(st.integers(0, 2)))
+            raw = encode_mode_reply(draw(st.integers(0, 2)))
         elif kind == "variant":
-            raw = p.encode_variant_reply(draw(st.booleans()), 100, 1.0)
+            raw = encode_variant_reply(draw(st.booleans()), 100, 1.0)
         else:
-            raw = p.reply_frame(0xBA, draw(st.binary(min_size=0, max_size=40)))
+            raw = reply_frame(0xBA, draw(st.binary(min_size=0, max_size=40)))
         noise = draw(st.binary(max_size=30).filter(lambda b: b"\x06" not in b and b"\x15" not in b))
         action = draw(st.sampled_from(["keep", "corrupt", "truncate"]))
         if action == "keep":
@@ -445,7 +467,7 @@ def test_parser_recovers_every_telegram_and_invents_none(
     bounds = [0, *cuts, len(stream)]
     for start, stop in itertools.pairwise(bounds):
         found += [e.raw for e in parser.feed(stream[start:stop]) if isinstance(e, Telegram)]
-        assert parser.pending <= p.MAX_LEN + 6
+        assert parser.pending <= MAX_LEN + 6
     found += [e.raw for e in parser.close() if isinstance(e, Telegram)]
     # Every intact telegram is recovered in order; anything else found must be a checksum-valid
     # frame that lay verbatim in the stream (a corruption can leave one), never a fabrication.
@@ -462,7 +484,7 @@ def test_parser_never_raises_and_stays_bounded(data: bytes, chunk: int) -> None:
         for event in parser.feed(data[start : start + chunk]):
             if isinstance(event, Telegram):
                 assert event.raw in data
-        assert parser.pending <= p.MAX_LEN + 6
+        assert parser.pending <= MAX_LEN + 6
     parser.close()
     stats = parser.stats
     assert stats.bytes_in == len(data)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from sensors.geometry.frames import scanner_pose_matrix
-from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
+from sensors.lms200.protocol.scan import decode_scan
+from sensors.lms200.protocol.stream import StreamParser, Telegram
 from sensors.scan3d.beacon import detect_beacons, fit_circle_fixed_radius
 from sensors.scan3d.mirror import MirrorGeometry, assemble_sweeps, estimate_mirror, scan_times
 from sensors.sim.scene import RaycastScene, build_mesh

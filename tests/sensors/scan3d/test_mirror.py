@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from estimation.app.resources import resolve_builtin
 from sensors.errors import SensorError
 from sensors.geometry.frames import scanner_pose_matrix
-from sensors.lms200.protocol import StreamParser, Telegram, decode_scan
+from sensors.lms200.protocol.scan import decode_scan
+from sensors.lms200.protocol.stream import StreamParser, Telegram
 from sensors.scan3d.mirror import (
     MirrorGeometry,
     assemble_sweeps,
@@ -79,7 +80,8 @@ def test_motor_fit_needs_edges() -> None:
 
 
 def test_scan_times_unwrap_the_turn_counter() -> None:
-    from sensors.lms200.protocol import TURN_S, Scan
+    from sensors.lms200.protocol.scan import Scan
+    from sensors.lms200.protocol.telegram import TURN_S
 
     turns = np.array([0, 6, 12, 300, 306, 1000])
     stamps = 5.0 + turns * TURN_S + np.array([0.01, 0.03, 0.0, 0.02, 0.05, 0.01])
