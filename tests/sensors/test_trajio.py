@@ -196,3 +196,18 @@ def test_relations_reader_checks_its_lines(tmp_path: Path) -> None:
     path.write_text("")
     with pytest.raises(TrajectoryError, match="no relations"):
         read_relations(path)
+
+
+def test_tum_keeps_the_digits_asked_for(tmp_path: Path) -> None:
+    path = write_tum(
+        tmp_path / "odo.tum", np.array([1.5]), np.array([[1.0, 2.0, 0.0]]), z_m=0.0, decimals=6
+    )
+    assert (
+        path.read_text().splitlines()[1]
+        == "1.500000 1.000000 2.000000 0.000000 0 0 0.000000000 1.000000000"
+    )
+    stamps, poses = read_tum(path)
+    np.testing.assert_allclose(stamps, [1.5])
+    np.testing.assert_allclose(poses, [[1.0, 2.0, 0.0]])
+    with pytest.raises(TrajectoryError, match=r"need stamps \(N,\) and poses \(N, 3\)"):
+        write_tum(tmp_path / "bad.tum", np.array([1.0, 2.0]), np.zeros((1, 3)))

@@ -52,6 +52,45 @@ def test_batch_writes_the_result_directory(result: Path) -> None:
     assert "| robot | poses |" in (result / "report.md").read_text()
 
 
+def test_report_json_is_the_report_the_run_returned(dataset: Path, tmp_path: Path) -> None:
+    output = run_batch(dataset, tmp_path / "again")
+    written = json.loads((tmp_path / "again" / "report.json").read_text())
+    assert written == json.loads(json.dumps(output.report, default=float))
+    timings = written["timings_s"]
+    steps = ["decode", "sweeps_and_beacons", "optimize", "search", "fusion"]
+    assert list(timings) == [*steps, "total"]
+    assert timings["total"] == pytest.approx(sum(timings[s] for s in steps))
+    assert all(timings[s] >= 0.0 for s in steps)
+
+
+def test_timings_total_every_step() -> None:
+    from estimation.app.pipeline import Timings
+
+    assert Timings(1.0, 2.0, 3.0, 4.0, 5.0).as_json()["total"] == pytest.approx(15.0)
+    assert Timings().as_json() == {
+        "decode": 0.0, "sweeps_and_beacons": 0.0, "optimize": 0.0, "search": 0.0, "fusion": 0.0,
+        "total": 0.0,
+    }  # fmt: skip
+
+
+def test_stations_hold_their_dwells_sweeps_in_time_order(dataset: Path) -> None:
+    from estimation.app.dataset import load_dataset, stations
+    from estimation.app.pipeline import prepare
+
+    prepared = prepare(dataset, None, None)
+    data = load_dataset(dataset)
+    found = stations(data, prepared.sweeps)
+    # a stands as the reference first; b then stands where it made its last mapper scan
+    assert [s.label for s in found] == ["a0", "b3"]
+    referenced = {f"{e['reference']}{e['poses'][e['reference']]}" for e in data.events
+                  if e["event"] == "dwell" and e.get("reference")}  # fmt: skip
+    assert {s.label for s in found} == referenced
+    assert [s.time_s for s in found] == sorted(s.time_s for s in found)
+    for station in found:
+        assert {v.robot for v in station.views} == {"a", "b"}
+        assert all(v.points_scanner.shape[1] == 3 for v in station.views)
+
+
 def test_evaluation_meets_the_targets(dataset: Path, result: Path) -> None:
     metrics = evaluate(dataset)
     for robot in ("a", "b"):

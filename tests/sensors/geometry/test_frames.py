@@ -28,3 +28,14 @@ def test_composition_follows_the_frame_convention() -> None:
     origin = transform_points(T_map_scanner, np.zeros((1, 3)))[0]
     np.testing.assert_allclose(origin, [1.0 + 0.1 * math.cos(0.3), 2.0 + 0.1 * math.sin(0.3), 0.45])
     np.testing.assert_allclose(T_map_scanner @ np.linalg.inv(T_map_scanner), np.eye(4), atol=1e-12)
+
+
+def test_the_scanner_mount_lifts_and_shifts_the_robot_frame() -> None:
+    from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
+
+    T_robot_scanner = scanner_mount(0.1, 0.45)
+    np.testing.assert_allclose(T_robot_scanner[:3, 3], [0.1, 0.0, 0.45])
+    np.testing.assert_allclose(T_robot_scanner[:3, :3], np.eye(3))
+    T_map_scanner = scanner_pose_matrix(2.0, 3.0, np.pi / 2, 0.1, 0.45)
+    np.testing.assert_allclose(T_map_scanner[:3, 3], [2.0, 3.1, 0.45], atol=1e-12)
+    np.testing.assert_allclose(T_map_scanner, pose2_matrix(2.0, 3.0, np.pi / 2) @ T_robot_scanner)
