@@ -3,13 +3,24 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "replace_directory", "write_bytes_atomic", "write_text_atomic"]
+from sensors.errors import OutputError
+
+__all__ = [
+    "MARKER",
+    "atomic_path",
+    "check_replaceable",
+    "output_kind",
+    "replace_directory",
+    "write_bytes_atomic",
+    "write_text_atomic",
+]
 
 
 @contextlib.contextmanager
@@ -28,6 +39,7 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     tmp = Path(tmp_name)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; outputs are shared
         os.replace(tmp, path)
     finally:
         with contextlib.suppress(FileNotFoundError):
@@ -44,14 +56,78 @@ def write_text_atomic(path: Path | str, text: str) -> None:
         tmp.write_text(text, encoding="utf-8")
 
 
-@contextlib.contextmanager
-def replace_directory(out_dir: Path) -> Iterator[Path]:
-    """Yield a fresh directory beside ``out_dir``; on success it takes ``out_dir``'s place."""
+#: The file that marks a folder as coopmap's own output, and of which kind.
+MARKER = ".coopmap"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def output_kind(folder: Path) -> str | None:
+    """The kind of coopmap output ``folder`` holds ("dataset", "result", …), from its marker."""
+    marker = Path(folder) / MARKER
+    try:
+        if marker.is_symlink() or not marker.is_file() or marker.stat().st_size > 4096:
+            return None
+        document = json.loads(marker.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    kind = document.get("kind") if isinstance(document, dict) else None
+    return kind if isinstance(kind, str) else None
+
+
+def check_replaceable(out_dir: Path, kind: str) -> None:
+    """Refuse an output folder that holds anything coopmap did not write as a ``kind``.
+
+    Allowed: a path that does not exist, an empty folder, or a folder marked as an earlier
+    coopmap ``kind``. Refused (``OutputError``): the working folder or one of its parents, a
+    file, a symbolic link, a user's folder, a coopmap output of another kind (a dataset as a
+    result's ``--out``).
+    """
     out_dir = Path(out_dir)
+    resolved = out_dir.resolve()
+    here = Path.cwd().resolve()
+    if resolved == here or resolved in here.parents:
+        raise OutputError(f"{out_dir}: refusing to write into the working folder or its parent")
+    if out_dir.is_symlink():
+        raise OutputError(f"{out_dir}: is a symbolic link; refusing to replace it")
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise OutputError(f"{out_dir}: exists and is not a folder; refusing to replace it")
+    found = output_kind(out_dir)
+    if found == kind:
+        return
+    if found is not None:
+        raise OutputError(
+            f"{out_dir}: holds a coopmap {found}; refusing to replace it with a {kind}"
+        )
+    entries = sorted(p.name for p in out_dir.iterdir())
+    if entries:
+        shown = ", ".join(entries[:3]) + (", …" if len(entries) > 3 else "")
+        raise OutputError(
+            f"{out_dir}: holds files coopmap did not write ({shown}); refusing to replace it "
+            "(choose another output folder)"
+        )
+
+
+@contextlib.contextmanager
+def replace_directory(out_dir: Path, kind: str) -> Iterator[Path]:
+    """Yield a fresh folder beside ``out_dir``, marked as a coopmap ``kind``; on success it takes
+    ``out_dir``'s place in one rename. ``out_dir`` must pass :func:`check_replaceable`: only an
+    earlier coopmap output of the same kind is ever replaced, and never on failure."""
+    out_dir = Path(out_dir)
+    check_replaceable(out_dir, kind)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
+        os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes it private; outputs are shared
+        (work / MARKER).write_text(json.dumps({"kind": kind}) + "\n", encoding="utf-8")
         yield work
+        check_replaceable(out_dir, kind)  # nothing else moved in while we wrote
     except BaseException:
         shutil.rmtree(work, ignore_errors=True)
         raise

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "SensorError", "TrajectoryError", "WorldError"]
+__all__ = ["DeviceError", "OutputError", "SensorError", "TrajectoryError", "WorldError"]
 
 
 class SensorError(Exception):
@@ -20,3 +20,7 @@ class DeviceError(SensorError):
 class TrajectoryError(SensorError, ValueError):
     """A trajectory or pose-graph file (TUM, g2o, CARMEN log) is malformed; the message names the
     file, the line and what is wrong."""
+
+
+class OutputError(SensorError):
+    """An output path coopmap must not write to (a user's folder, the input itself, a file)."""

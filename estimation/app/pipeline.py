@@ -51,6 +51,7 @@ from estimation.search.stations import (
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams
+from sensors.atomic import check_replaceable
 from sensors.geometry.frames import pose2_matrix
 
 __all__ = ["Prepared", "Solution", "Timings", "prepare", "run_batch", "run_isam"]
@@ -308,11 +309,12 @@ def run_batch(
     progress: Progress | None = None,
 ) -> BatchOutput:
     """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results."""
+    out = Path(out_dir) if out_dir is not None else Path(dataset_dir) / "result"
+    check_replaceable(out, "result")  # before the work, not after it
     prepared = prepare(dataset_dir, overrides, progress)
     dataset, builder = prepared.dataset, prepared.builder
     config = dataset.config
     params = station_params(config)
-    out = Path(out_dir) if out_dir is not None else dataset.path / "result"
     clock = time.perf_counter()
     gauge = pose_key(dataset.robots[0], 0)
     dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
@@ -372,10 +374,11 @@ def run_isam(
     """
     from estimation.posegraph.smoother import IncrementalSmoother
 
+    out = Path(out_dir) if out_dir is not None else Path(dataset_dir) / "result_isam"
+    check_replaceable(out, "result")  # before the work, not after it
     prepared = prepare(dataset_dir, overrides, progress)
     dataset, events = prepared.dataset, prepared.events
     config = dataset.config
-    out = Path(out_dir) if out_dir is not None else dataset.path / "result_isam"
     checkpoint = out.with_name(f".{out.name}.checkpoint.npz")
     robust = config.graph.robust
     kernel: Any = robust if robust in ("huber", "cauchy") else "none"

@@ -86,7 +86,7 @@ def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
 
 
 def write_results(output: BatchOutput, config: Config) -> None:
-    with replace_directory(output.out_dir) as work:
+    with replace_directory(output.out_dir, "result") as work:
         for robot, poses in output.poses.items():
             if not poses:
                 continue

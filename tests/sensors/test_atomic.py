@@ -6,7 +6,15 @@ from pathlib import Path
 
 import pytest
 
-from sensors.atomic import atomic_path, write_text_atomic
+from sensors.atomic import (
+    MARKER,
+    atomic_path,
+    check_replaceable,
+    output_kind,
+    replace_directory,
+    write_text_atomic,
+)
+from sensors.errors import OutputError
 
 
 def test_success_replaces_the_file_and_leaves_no_temporary(tmp_path: Path) -> None:
@@ -34,3 +42,75 @@ def test_failure_keeps_the_old_file(tmp_path: Path) -> None:
     assert seen[0].parent == tmp_path
     assert path.read_bytes() == b"old map"
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]
+
+
+def _write(out: Path, kind: str, name: str) -> None:
+    with replace_directory(out, kind) as work:
+        (work / name).write_text(name)
+
+
+def test_only_an_earlier_output_of_the_same_kind_is_replaced(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    _write(out, "dataset", "first.txt")
+    assert output_kind(out) == "dataset"
+    _write(out, "dataset", "second.txt")
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "second.txt"]
+    with pytest.raises(
+        OutputError, match=r"holds a coopmap dataset; refusing to replace it with a result"
+    ):
+        _write(out, "result", "r.txt")
+    assert (out / "second.txt").read_text() == "second.txt"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # no temporary left behind
+
+
+def test_a_users_folder_is_never_replaced(tmp_path: Path) -> None:
+    thesis = tmp_path / "my_thesis"
+    thesis.mkdir()
+    (thesis / "chapter1.tex").write_text("precious")
+    with pytest.raises(OutputError, match=r"holds files coopmap did not write \(chapter1\.tex\)"):
+        _write(thesis, "dataset", "x")
+    assert (thesis / "chapter1.tex").read_text() == "precious"
+    (thesis / MARKER).write_text("{not json")  # a broken marker is not coopmap's
+    with pytest.raises(OutputError, match="did not write"):
+        check_replaceable(thesis, "dataset")
+
+
+@pytest.mark.parametrize("case", ["file", "symlink", "cwd", "parent"])
+def test_files_links_and_the_working_folder_are_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, case: str
+) -> None:
+    work = tmp_path / "work"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    target = {"file": tmp_path / "f.txt", "symlink": tmp_path / "link", "cwd": Path("."),
+              "parent": Path("..")}[case]  # fmt: skip
+    if case == "file":
+        target.write_text("keep")
+    if case == "symlink":
+        _write(tmp_path / "real", "result", "r")
+        target.symlink_to(tmp_path / "real")
+    expected = {"file": "is not a folder", "symlink": "symbolic link",
+                "cwd": "working folder", "parent": "working folder"}[case]  # fmt: skip
+    with pytest.raises(OutputError, match=expected):
+        _write(target, "result", "x")
+    if case == "file":
+        assert target.read_text() == "keep"
+
+
+def test_an_empty_folder_may_be_used(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    _write(tmp_path / "empty", "result", "r.txt")
+    assert (tmp_path / "empty" / "r.txt").is_file()
+
+
+def test_outputs_are_readable_by_others_as_the_umask_allows(tmp_path: Path) -> None:
+    import os
+
+    old = os.umask(0o022)
+    try:
+        _write(tmp_path / "out", "result", "r.txt")
+        write_text_atomic(tmp_path / "out" / "f.txt", "x")
+    finally:
+        os.umask(old)
+    assert (tmp_path / "out").stat().st_mode & 0o777 == 0o755
+    assert (tmp_path / "out" / "f.txt").stat().st_mode & 0o777 == 0o644

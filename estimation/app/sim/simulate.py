@@ -21,7 +21,7 @@ from estimation import __version__
 from estimation.app.config import Config, ConfigError, config_from_mapping
 from estimation.app.resources import resolve_builtin
 from estimation.app.rig import robot_body, simulated_scanner
-from sensors.atomic import replace_directory, write_text_atomic
+from sensors.atomic import check_replaceable, replace_directory, write_text_atomic
 from sensors.sim.mission import (
     MissionSpec,
     OdometryNoise,
@@ -90,6 +90,7 @@ def run_simulation(
     progress: Callable[[str, float], None] | None = None,
 ) -> SimulationResult:
     mission_path = Path(mission_path)
+    check_replaceable(Path(out_dir), "dataset")  # before the work, not after it
     mission = load_mission(mission_path)
     config = mission_config(mission, overrides, str(mission_path))
     world = load_world(resolve_mission_world(mission, mission_path))
@@ -141,7 +142,7 @@ def run_simulation(
     )
     scanners = {name: simulated_scanner(config, np.random.default_rng([seed, 3, k]))
                 for k, name in enumerate(mission.robot_names())}  # fmt: skip
-    with replace_directory(Path(out_dir)) as work:
+    with replace_directory(Path(out_dir), "dataset") as work:
         stats = write_dataset(
             work, timeline, scanners, scenes, robot_body(config),
             scanner_height_m=config.robot.scanner_height_m, odometry_noise=noise,

@@ -63,6 +63,19 @@ def test_report_json_is_the_report_the_run_returned(dataset: Path, tmp_path: Pat
     assert all(timings[s] >= 0.0 for s in steps)
 
 
+def test_batch_refuses_to_write_over_its_dataset_or_a_folder_of_datasets(
+    dataset: Path, tmp_path: Path
+) -> None:
+    from sensors.errors import OutputError
+
+    before = sorted(p.name for p in dataset.iterdir())
+    with pytest.raises(OutputError, match="holds a coopmap dataset; refusing to replace it"):
+        run_batch(dataset, dataset)
+    with pytest.raises(OutputError, match="holds files coopmap did not write"):
+        run_batch(dataset, dataset.parent)
+    assert sorted(p.name for p in dataset.iterdir()) == before
+
+
 def test_timings_total_every_step() -> None:
     from estimation.app.pipeline import Timings
 

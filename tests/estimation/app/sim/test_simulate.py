@@ -205,11 +205,11 @@ def test_dataset_is_complete_and_consistent(tmp_path: Path) -> None:
 
 def test_failed_simulation_keeps_the_old_dataset(tmp_path: Path) -> None:
     out = tmp_path / "ds"
-    out.mkdir()
-    (out / "keep.txt").write_text("earlier result")
+    with replace_directory(out, "dataset") as work:
+        (work / "keep.txt").write_text("earlier result")
 
     def failing_run() -> None:
-        with replace_directory(out) as work:
+        with replace_directory(out, "dataset") as work:
             (work / "partial").write_text("x")
             raise RuntimeError("simulation failed")
 
@@ -217,9 +217,20 @@ def test_failed_simulation_keeps_the_old_dataset(tmp_path: Path) -> None:
         failing_run()
     assert (out / "keep.txt").read_text() == "earlier result"
     assert [p.name for p in tmp_path.iterdir()] == ["ds"]
-    with replace_directory(out) as work:
+    with replace_directory(out, "dataset") as work:
         (work / "new.txt").write_text("new")
-    assert [p.name for p in out.iterdir()] == ["new.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [".coopmap", "new.txt"]
+
+
+def test_simulate_refuses_a_users_folder_before_simulating(tmp_path: Path) -> None:
+    thesis = tmp_path / "my_thesis"
+    thesis.mkdir()
+    (thesis / "chapter1.tex").write_text("precious")
+    result = CliRunner().invoke(app, ["simulate", "essex_lab", "--out", str(thesis)])
+    assert result.exit_code == 2
+    assert "holds files coopmap did not write (chapter1.tex)" in result.stderr
+    assert [p.name for p in thesis.iterdir()] == ["chapter1.tex"]
+    assert [p.name for p in tmp_path.iterdir()] == ["my_thesis"]
 
 
 def test_simulate_cli_errors(tmp_path: Path) -> None:
