@@ -91,7 +91,10 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
         raise ConfigError(f"{mission_file}: malformed YAML: {exc}") from None
     if not isinstance(mission, dict) or "robots" not in mission:
         raise ConfigError(f"{mission_file}: not a mission (no robots)")
+    robots, starts = _robots(mission["robots"], mission_file)
     config_doc = mission.get("config") or {}
+    if not isinstance(config_doc, dict):
+        raise ConfigError(f"{mission_file}: config: must be a mapping")
     merged = merge_mappings(config_doc, overrides or {})
     config = config_from_mapping(merged, source=str(mission_file))
     events = []
@@ -104,13 +107,72 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
             raise ConfigError(f"{events_file}:{number}: not JSON: {exc.msg}") from None
         if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
             raise ConfigError(f"{events_file}:{number}: an event needs 'event' and 't_s'")
+        _check_event(event, robots, f"{events_file}:{number}")
         events.append(event)
-    robots = [str(r["name"]) for r in mission["robots"]]
-    starts = {
-        str(r["name"]): np.array([r["start"][0], r["start"][1], math.radians(r["start"][2])])
-        for r in mission["robots"]
-    }
     return Dataset(path, config, robots, starts, events, mission)
+
+
+def _robots(entries: Any, source: Path) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The mission's robot names (one lowercase letter each, unique) and start poses."""
+    if not isinstance(entries, list) or len(entries) < 1:
+        raise ConfigError(f"{source}: robots: must be a list of {{name, start}}")
+    robots: list[str] = []
+    starts: dict[str, np.ndarray] = {}
+    for n, entry in enumerate(entries):
+        where = f"{source}: robots[{n}]"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where}: must be a mapping with name and start")
+        name = entry.get("name")
+        if not (isinstance(name, str) and len(name) == 1 and "a" <= name <= "z"):
+            raise ConfigError(f"{where}: name must be one lowercase letter a-z, got {name!r}")
+        if name in starts:
+            raise ConfigError(f"{where}: robot {name!r} is listed twice")
+        start = entry.get("start")
+        if not (isinstance(start, list) and len(start) == 3 and all(_finite(v) for v in start)):
+            raise ConfigError(f"{where}: start must be [x_m, y_m, yaw_deg], got {start!r}")
+        robots.append(name)
+        starts[name] = np.array([start[0], start[1], math.radians(start[2])], dtype=float)
+    return robots, starts
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_event(event: dict[str, Any], robots: list[str], where: str) -> None:
+    """The fields ``build_events`` reads, with their types (docs/dataset.md)."""
+    kind = event["event"]
+    if not _finite(event["t_s"]):
+        raise ConfigError(f"{where}: t_s must be a finite number, got {event['t_s']!r}")
+    if kind == "move":
+        robot = event.get("robot")
+        if robot not in robots:
+            raise ConfigError(f"{where}: move of robot {robot!r}, not one of the mission's robots")
+        for key in ("from_index", "to_index"):
+            value = event.get(key)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
+                raise ConfigError(f"{where}: move: {key} must be an index >= 0, got {value!r}")
+        if event["to_index"] != event["from_index"] + 1:
+            raise ConfigError(f"{where}: move: to_index must be from_index + 1")
+        if not _finite(event.get("start_s")) or event["start_s"] > event["t_s"]:
+            raise ConfigError(f"{where}: move: start_s must be a number <= t_s")
+    elif kind == "dwell":
+        if not _finite(event.get("end_s")) or event["end_s"] < event["t_s"]:
+            raise ConfigError(f"{where}: dwell: end_s must be a number >= t_s")
+        poses = event.get("poses")
+        if not isinstance(poses, dict) or sorted(poses) != sorted(robots):
+            raise ConfigError(
+                f"{where}: dwell: poses must give the pose index of every robot "
+                f"({', '.join(robots)}), got {poses!r}"
+            )
+        for robot, index in poses.items():
+            if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
+                raise ConfigError(f"{where}: dwell: poses.{robot} must be an index >= 0")
+        for role in ("reference", "mapper"):
+            if event.get(role) is not None and event[role] not in robots:
+                raise ConfigError(
+                    f"{where}: dwell: {role} {event[role]!r} is not one of the mission's robots"
+                )
 
 
 @dataclass

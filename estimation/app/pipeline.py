@@ -115,6 +115,9 @@ def prepare(
     decode = time.perf_counter() - clock
     clock = time.perf_counter()
     stream = build_events(dataset, streams, progress)
+    if not stream.sweeps:
+        why = "; ".join(stream.counts.missing_sweeps[:3]) or "the dataset has no dwells"
+        raise EstimationError(f"{dataset.path}: no sweep in any dwell ({why})")
     timings = Timings(decode=decode, sweeps_and_beacons=time.perf_counter() - clock)
     return Prepared(
         dataset, streams, stream.events, stream.sweeps, stream.counts, stream.builder, timings

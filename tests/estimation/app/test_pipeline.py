@@ -148,6 +148,69 @@ def test_bad_datasets_are_clear_errors(dataset: Path, tmp_path: Path) -> None:
     assert "no result here" in result.stderr
 
 
+MOVE = '{"t_s": 5, "event": "move", "robot": "b", "from_index": 0, "to_index": 1, "start_s": 1}'
+DWELL = '{"t_s": 5, "event": "dwell", "end_s": 9, "poses": {"a": 0, "b": 1}}'
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        (DWELL.replace(', "end_s": 9', ""), r"dwell: end_s must be a number >= t_s"),
+        (DWELL.replace('"t_s": 5', '"t_s": "soon"'), r"t_s must be a finite number, got 'soon'"),
+        (DWELL.replace('"t_s": 5', '"t_s": NaN'), r"t_s must be a finite number, got nan"),
+        (DWELL.replace(', "b": 1', ""), r"poses must give the pose index of every robot \(a, b\)"),
+        (DWELL.replace('"b": 1', '"b": -1'), r"poses\.b must be an index >= 0"),
+        (DWELL.replace("}}", '}, "reference": "z"}'), r"reference 'z' is not one of the mission"),
+        (MOVE.replace('"robot": "b"', '"robot": "../../x"'), r"move of robot '\.\./\.\./x'"),
+        (MOVE.replace('"to_index": 1', '"to_index": 3'), r"to_index must be from_index \+ 1"),
+        (MOVE.replace(', "start_s": 1', ""), r"start_s must be a number <= t_s"),
+        (MOVE.replace('"from_index": 0', '"from_index": "0"'), r"from_index must be an index"),
+    ],
+)
+def test_malformed_events_are_named_with_their_line(
+    dataset: Path, tmp_path: Path, line: str, message: str
+) -> None:
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    shutil.copy(dataset / "mission.yaml", copy / "mission.yaml")
+    (copy / "events.jsonl").write_text(MOVE + "\n" + line + "\n")
+    with pytest.raises(ConfigError, match=r"events\.jsonl:2: (move: |dwell: )?" + message):
+        load_dataset(copy)
+    result = CliRunner().invoke(app, ["batch", str(copy)])
+    assert result.exit_code == 2
+    assert "Traceback" not in result.output
+
+
+@pytest.mark.parametrize(
+    ("robots", "message"),
+    [
+        ("[{name: ../../x, start: [0, 0, 0]}]", r"robots\[0\]: name must be one lowercase letter"),
+        ("[{name: a, start: [0, 0, 0]}, {name: a, start: [1, 0, 0]}]", "listed twice"),
+        ("[{name: a, start: [0, .nan, 0]}]", r"start must be \[x_m, y_m, yaw_deg\]"),
+        ("[{name: a}]", r"start must be \[x_m, y_m, yaw_deg\], got None"),
+        ("{a: 1}", "robots: must be a list"),
+    ],
+)
+def test_malformed_robots_are_clear_errors(tmp_path: Path, robots: str, message: str) -> None:
+    (tmp_path / "mission.yaml").write_text(f"robots: {robots}\n")
+    (tmp_path / "events.jsonl").write_text("")
+    with pytest.raises(ConfigError, match=message):
+        load_dataset(tmp_path)
+
+
+def test_a_dataset_without_sweeps_is_an_error(dataset: Path, tmp_path: Path) -> None:
+    from estimation.errors import EstimationError
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result*"))
+    events = [json.loads(line) for line in (copy / "events.jsonl").read_text().splitlines()]
+    kept = [e for e in events if e["event"] != "dwell"]
+    (copy / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in kept))
+    with pytest.raises(EstimationError, match="no sweep in any dwell"):
+        run_batch(copy)
+    assert not (copy / "result").exists()
+
+
 def test_failed_batch_keeps_the_earlier_result(dataset: Path, result: Path, tmp_path: Path) -> None:
     copy = tmp_path / "copy"
     shutil.copytree(dataset, copy)
