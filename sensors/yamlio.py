@@ -7,13 +7,22 @@ document and the offending value, e.g. ``grid.resolution_m: must be > 0 (got -0.
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
-__all__ = ["format_validation_error", "merge_mappings", "read_yaml_mapping", "validate_mapping"]
+__all__ = [
+    "YAML_LIMIT_BYTES",
+    "format_validation_error",
+    "merge_mappings",
+    "parse_yaml",
+    "read_text_file",
+    "read_yaml_mapping",
+    "validate_mapping",
+]
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -68,26 +77,75 @@ def merge_mappings(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
     return merged
 
 
+#: YAML documents coopmap reads (configs, worlds, missions, map metadata) are small.
+YAML_LIMIT_BYTES = 16 * 2**20
+
+
+def read_text_file(path: Path | str, error: type[Exception], limit_bytes: int) -> str:
+    """The UTF-8 text of a regular file of at most ``limit_bytes``; else ``error``, one line.
+
+    A FIFO, a device (``/dev/zero``) or a directory is refused before it is opened, so reading
+    never blocks and never fills memory.
+    """
+    path = Path(path)
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if stat.S_ISDIR(info.st_mode):
+        raise error(f"{path}: is a directory, expected a file") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise error(f"{path}: not a regular file (a pipe or a device?)")
+    if info.st_size > limit_bytes:
+        raise error(f"{path}: {info.st_size:,} bytes, more than the {limit_bytes:,} expected")
+    try:
+        with path.open("rb") as handle:
+            data = handle.read(limit_bytes + 1)
+    except OSError as exc:
+        raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if len(data) > limit_bytes:
+        raise error(f"{path}: more than the {limit_bytes:,} bytes expected")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """PyYAML's safe loader without anchors and aliases: an alias bomb (a few hundred bytes that
+    expand to gigabytes) is refused at its first alias."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, "aliases (*name) are not allowed", event.start_mark
+            )
+        return super().compose_node(parent, index)
+
+
+def parse_yaml(text: str, source: str, error: type[Exception]) -> Any:
+    """The document of ``text``; malformed YAML, aliases and absurd nesting are one-line errors."""
+    try:
+        return yaml.load(text, Loader=_NoAliasLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise error(f"{source}: malformed YAML{where}: {problem}") from None
+    except RecursionError:
+        raise error(f"{source}: YAML nested too deeply") from None
+
+
 def read_yaml_mapping(path: Path, error: type[Exception]) -> dict[str, Any]:
     """Read a YAML file whose top level must be a mapping; raise ``error`` with one clear line.
 
     An empty file is an empty mapping.
     """
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise error(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise error(f"{path}: is a directory, expected a YAML file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise error(f"{path}: cannot read: {exc}") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise error(f"{path}: malformed YAML{where}: {problem}") from None
+    text = read_text_file(path, error, YAML_LIMIT_BYTES)
+    data = parse_yaml(text, str(path), error)
     if data is None:
         return {}
     if not isinstance(data, dict):

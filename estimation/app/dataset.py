@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from estimation.app.config import Config, ConfigError, config_from_mapping
 from estimation.app.rig import T_robot_scanner, beacon_parameters, graph_settings, mirror_geometry
@@ -36,7 +35,7 @@ from sensors.lms200.protocol.telegram import ProtocolError
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
 from sensors.scan3d.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
 from sensors.trajio import read_tum
-from sensors.yamlio import merge_mappings
+from sensors.yamlio import merge_mappings, read_text_file, read_yaml_mapping
 
 __all__ = [
     "Counts",
@@ -54,6 +53,8 @@ __all__ = [
 ]
 
 Progress = Callable[[str], None]
+#: events.jsonl of a very long mission (a line per move and dwell) stays far below this.
+EVENTS_LIMIT_BYTES = 256 * 2**20
 
 
 @dataclass(frozen=True)
@@ -85,11 +86,8 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     for needed in (mission_file, events_file):
         if not needed.is_file():
             raise ConfigError(f"{path}: not a coopmap dataset ({needed.name} is missing)")
-    try:
-        mission = yaml.safe_load(mission_file.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{mission_file}: malformed YAML: {exc}") from None
-    if not isinstance(mission, dict) or "robots" not in mission:
+    mission = read_yaml_mapping(mission_file, ConfigError)
+    if "robots" not in mission:
         raise ConfigError(f"{mission_file}: not a mission (no robots)")
     robots, starts = _robots(mission["robots"], mission_file)
     config_doc = mission.get("config") or {}
@@ -98,7 +96,8 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     merged = merge_mappings(config_doc, overrides or {})
     config = config_from_mapping(merged, source=str(mission_file))
     events = []
-    for number, line in enumerate(events_file.read_text(encoding="utf-8").splitlines(), 1):
+    text = read_text_file(events_file, ConfigError, EVENTS_LIMIT_BYTES)
+    for number, line in enumerate(text.splitlines(), 1):
         if not line.strip():
             continue
         try:

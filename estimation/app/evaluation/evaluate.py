@@ -17,9 +17,10 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from estimation.app.evaluation.metrics import ate, rpe
 from estimation.errors import EstimationError
@@ -29,6 +30,7 @@ from sensors.sim.scene import build_mesh
 from sensors.sim.truth import surface_voxels
 from sensors.sim.world import load_world
 from sensors.trajio import read_tum
+from sensors.yamlio import read_text_file, validate_mapping
 
 __all__ = ["evaluate", "map_quality"]
 
@@ -87,13 +89,78 @@ def map_quality(grid: Any, world_path: Path) -> dict[str, Any]:
     }
 
 
+Label = Annotated[str, StringConstraints(pattern=r"^[a-z][0-9]+$")]
+Pose = Annotated[list[float], Field(min_length=3, max_length=3)]
+
+
+class _Loose(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class _Search(_Loose):
+    station: Label
+    against: Label | Literal["map"]
+    kind: str = "loop"
+    band: str = "ceiling"
+    pose: Pose
+    used: bool = False
+    time_s: float = 0.0
+
+
+class _Localization(_Loose):
+    factors: int = 0
+    validation: dict[str, Any] | None = None
+    searches: list[_Search] = []
+    relocalization: list[_Search] = []
+
+
+class _Observation(_Loose):
+    pair: Annotated[list[Label], Field(min_length=2, max_length=2)]
+    measurement: Pose | None = None
+    accepted: bool
+
+
+class _Report(_Loose):
+    """The parts of ``report.json`` that ``evaluate`` reads (docs/results.md)."""
+
+    robots: dict[Annotated[str, StringConstraints(pattern=r"^[a-z]$")], dict[str, Any]]
+    observations: int
+    gate_rejections: list[Any]
+    outlier_factors: list[Any]
+    timings_s: dict[str, float]
+    missing_sweeps: list[Any]
+    unseen_pairs: list[Any]
+    dropped_poses: list[Any]
+    mutual_observations: list[_Observation] = []
+    global_localization: _Localization = _Localization()
+
+
+#: report.json of a very long mission stays far below this.
+REPORT_LIMIT_BYTES = 512 * 2**20
+
+
+def read_report(path: Path) -> dict[str, Any]:
+    """``report.json`` of a result, checked: malformed, truncated or foreign files are one-line
+    errors naming the file and the key."""
+    text = read_text_file(path, EstimationError, REPORT_LIMIT_BYTES)
+    try:
+        document = json.loads(text)
+    except (json.JSONDecodeError, RecursionError) as exc:
+        what = exc.msg if isinstance(exc, json.JSONDecodeError) else "nested too deeply"
+        raise EstimationError(f"{path}: not a coopmap report (not JSON: {what})") from None
+    if not isinstance(document, dict):
+        raise EstimationError(f"{path}: not a coopmap report (a {type(document).__name__})")
+    validate_mapping(_Report, document, EstimationError, f"{path}: not a coopmap report")
+    return document
+
+
 def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> dict[str, Any]:
     dataset = Path(dataset_dir)
     result = Path(result_dir) if result_dir is not None else dataset / "result"
     report_path = result / "report.json"
     if not report_path.is_file():
         raise EstimationError(f"{result}: no result here (report.json missing): run coopmap batch")
-    report = json.loads(report_path.read_text(encoding="utf-8"))
+    report = read_report(report_path)
     metrics: dict[str, Any] = {"robots": {}}
     all_est, all_true = [], []
     for robot in sorted(report["robots"]):

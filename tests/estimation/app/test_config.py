@@ -147,7 +147,7 @@ def test_missing_file_and_directory_are_clear_errors(tmp_path: Path) -> None:
 def test_binary_garbage_is_a_clear_error(tmp_path: Path) -> None:
     path = tmp_path / "garbage.yaml"
     path.write_bytes(b"\xff\xfe\x00\x81garbage")
-    with pytest.raises(ConfigError, match=r"garbage\.yaml: cannot read"):
+    with pytest.raises(ConfigError, match=r"garbage\.yaml: not UTF-8 text"):
         load_config(path)
 
 
