@@ -17,6 +17,7 @@ __all__ = [
     "atomic_path",
     "check_replaceable",
     "output_kind",
+    "remove_leftovers",
     "replace_directory",
     "write_bytes_atomic",
     "write_text_atomic",
@@ -66,17 +67,50 @@ def _umask() -> int:
     return mask
 
 
-def output_kind(folder: Path) -> str | None:
-    """The kind of coopmap output ``folder`` holds ("dataset", "result", …), from its marker."""
+def _marker(folder: Path) -> dict[str, object]:
     marker = Path(folder) / MARKER
     try:
         if marker.is_symlink() or not marker.is_file() or marker.stat().st_size > 4096:
-            return None
+            return {}
         document = json.loads(marker.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-        return None
-    kind = document.get("kind") if isinstance(document, dict) else None
+        return {}
+    return document if isinstance(document, dict) else {}
+
+
+def output_kind(folder: Path) -> str | None:
+    """The kind of coopmap output ``folder`` holds ("dataset", "result", …), from its marker."""
+    kind = _marker(folder).get("kind")
     return kind if isinstance(kind, str) else None
+
+
+def _alive(pid: object) -> bool:
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # it exists, owned by someone else
+    return True
+
+
+def remove_leftovers(out_dir: Path, kind: str) -> list[Path]:
+    """Remove the hidden folders that runs writing ``out_dir`` left behind when they were killed
+    (``.<name>.*`` beside it, marked as this ``kind`` by a process that is gone); returns them."""
+    out_dir = Path(out_dir)
+    removed: list[Path] = []
+    if not out_dir.parent.is_dir():
+        return removed
+    for candidate in out_dir.parent.glob(f".{out_dir.name}.*"):
+        if candidate.is_symlink() or not candidate.is_dir():
+            continue
+        marker = _marker(candidate)
+        if marker.get("kind") == kind and not _alive(marker.get("pid")):
+            shutil.rmtree(candidate, ignore_errors=True)
+            removed.append(candidate)
+    return removed
 
 
 def check_replaceable(out_dir: Path, kind: str) -> None:
@@ -122,10 +156,12 @@ def replace_directory(out_dir: Path, kind: str) -> Iterator[Path]:
     out_dir = Path(out_dir)
     check_replaceable(out_dir, kind)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
+    remove_leftovers(out_dir, kind)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
         os.chmod(work, 0o777 & ~_umask())  # mkdtemp makes it private; outputs are shared
-        (work / MARKER).write_text(json.dumps({"kind": kind}) + "\n", encoding="utf-8")
+        marker = {"kind": kind, "pid": os.getpid()}  # the pid tells a killed run's leftovers
+        (work / MARKER).write_text(json.dumps(marker) + "\n", encoding="utf-8")
         yield work
         check_replaceable(out_dir, kind)  # nothing else moved in while we wrote
     except BaseException:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -104,8 +105,6 @@ def test_an_empty_folder_may_be_used(tmp_path: Path) -> None:
 
 
 def test_outputs_are_readable_by_others_as_the_umask_allows(tmp_path: Path) -> None:
-    import os
-
     old = os.umask(0o022)
     try:
         _write(tmp_path / "out", "result", "r.txt")
@@ -114,3 +113,32 @@ def test_outputs_are_readable_by_others_as_the_umask_allows(tmp_path: Path) -> N
         os.umask(old)
     assert (tmp_path / "out").stat().st_mode & 0o777 == 0o755
     assert (tmp_path / "out" / "f.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_a_killed_runs_hidden_folder_is_removed_by_the_next_run(tmp_path: Path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "result"
+    code = (
+        "import os, sys\n"
+        "from pathlib import Path\n"
+        "from sensors.atomic import replace_directory\n"
+        "with replace_directory(Path(sys.argv[1]), 'result') as work:\n"
+        "    (work / 'half.txt').write_text('x')\n"
+        "    os._exit(9)\n"  # killed half-way: no clean-up runs
+    )
+    subprocess.run([sys.executable, "-c", code, str(out)], check=False, timeout=60)
+    left = [p for p in tmp_path.iterdir() if p.name.startswith(".result.")]
+    assert len(left) == 1
+    assert (left[0] / "half.txt").is_file()
+    alive = tmp_path / ".result.running"
+    alive.mkdir()
+    (alive / MARKER).write_text(json.dumps({"kind": "result", "pid": os.getpid()}))
+    foreign = tmp_path / ".result.mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("not coopmap's")
+    _write(out, "result", "r.txt")
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == [".result.mine", ".result.running", "result"]  # a live run's and a user's stay
