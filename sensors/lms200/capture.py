@@ -61,7 +61,14 @@ class CaptureWriter:
             raise CaptureError(f"{self.path}: already exists; choose another name or remove it")
         self.partial = self.path.with_name(self.path.name + ".partial")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: BinaryIO | None = open(self.partial, "wb")  # noqa: SIM115 - closed in close()
+        try:
+            # "xb": a recording cut short earlier is kept, never truncated by the next one
+            self._file: BinaryIO | None = open(self.partial, "xb")  # noqa: SIM115 - see close()
+        except FileExistsError:
+            raise CaptureError(
+                f"{self.partial}: a recording that was cut short is there (readable as a "
+                f"capture); rename or remove it before recording to {self.path.name}"
+            ) from None
         meta = {"format": "coopmap lms capture", "started_unix_s": time.time(), **(header or {})}
         self._file.write(MAGIC + json.dumps(meta, sort_keys=True).encode("utf-8") + b"\n")
         self.bytes_written = 0

@@ -132,6 +132,19 @@ def test_interrupted_recording_leaves_a_readable_partial(tmp_path: Path) -> None
     writer.close()
 
 
+def test_a_new_recording_never_truncates_a_crashed_ones_partial(tmp_path: Path) -> None:
+    crashed = CaptureWriter(tmp_path / "live.cap")
+    for k in range(79):
+        crashed.write(float(k), SCAN)
+    crashed.flush()  # the process dies here, leaving live.cap.partial
+    size = crashed.partial.stat().st_size
+    with pytest.raises(CaptureError, match=r"live\.cap\.partial: a recording that was cut short"):
+        CaptureWriter(tmp_path / "live.cap")
+    assert crashed.partial.stat().st_size == size
+    records, _ = decode_stream(CaptureReader(crashed.partial))
+    assert sum(r["kind"] == "scan" for r in records) == 79
+
+
 def test_lms_decode_cli_json_and_text(tmp_path: Path) -> None:
     path = write_capture(tmp_path / "run.cap")
     result = CliRunner().invoke(app, ["lms", "decode", str(path), "--json"])
