@@ -469,6 +469,8 @@ class IncrementalSmoother:
             )
         if sorted(keys) != sorted(builder.guesses) or poses.shape != (len(keys), 3):
             raise EstimationError(f"{path}: checkpoint poses do not match the rebuilt graph")
+        if not np.all(np.isfinite(poses)):
+            raise EstimationError(f"{path}: checkpoint holds non-finite poses (NaN or infinity)")
         smoother._update(
             to_gtsam_graph(builder.factors, kernel),
             to_gtsam_values(dict(zip(keys, poses, strict=True))),

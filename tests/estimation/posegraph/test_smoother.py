@@ -230,6 +230,13 @@ def test_checkpoint_errors(tmp_path: Path, mission) -> None:  # type: ignore[no-
     other = leapfrog(40, 9, seed=12).events
     with pytest.raises(EstimationError, match="does not rebuild the checkpointed graph"):
         IncrementalSmoother.restore(path, iter(other))
+    with np.load(path) as data:
+        entries = {name: data[name] for name in data.files}
+    entries["poses"] = np.full_like(entries["poses"], np.nan)
+    poisoned = tmp_path / "nan.npz"
+    np.savez(poisoned, **entries)
+    with pytest.raises(EstimationError, match=r"nan\.npz: checkpoint holds non-finite poses"):
+        IncrementalSmoother.restore(poisoned, iter(mission.events))
 
 
 def test_isam2_reports_an_indeterminate_update() -> None:
