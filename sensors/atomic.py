@@ -42,6 +42,11 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
         yield tmp
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; outputs are shared
         os.replace(tmp, path)
+    except OSError as exc:
+        if exc.filename is not None and Path(exc.filename) != tmp:
+            raise
+        # A full disk fails on the temporary file: name the file the user asked for.
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -142,3 +142,19 @@ def test_a_killed_runs_hidden_folder_is_removed_by_the_next_run(tmp_path: Path) 
     _write(out, "result", "r.txt")
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == [".result.mine", ".result.running", "result"]  # a live run's and a user's stay
+
+
+def test_a_full_disk_names_the_file_being_written(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+
+    def full(self: Path, *args: object, **kwargs: object) -> int:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full)
+    target = tmp_path / "report.json"
+    with pytest.raises(OSError, match="No space left on device") as caught:
+        write_text_atomic(target, "x")
+    assert caught.value.filename == str(target)
+    assert list(tmp_path.iterdir()) == []  # no temporary left behind
