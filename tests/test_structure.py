@@ -230,3 +230,16 @@ def test_tests_mirror_the_packages() -> None:
         if p.parent.relative_to(REPO / "tests").as_posix() not in folders
     ]
     assert misplaced == []
+
+
+def test_no_module_imports_another_modules_private_names() -> None:
+    """Helpers shared between modules are public; an underscore name stays in its module."""
+    violations = []
+    for path in sources():
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                private = [n for n in private if not n.startswith("__")]
+                violations += [f"{relative(path)}: {node.module}.{n}" for n in private]
+    assert violations == []

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from sensors.lms200.protocol.telegram import (
-    _DISTANCE_MASK,
     BAUD_RATES,
+    DISTANCE_MASK,
     MODE_CONTINUOUS,
     MODE_INSTALLATION,
     MODE_ON_REQUEST,
@@ -183,7 +183,7 @@ class LmsConfig:
     ) -> LmsConfig:
         raw = bytearray(self.raw)
         if measuring_mode is not None:
-            if measuring_mode not in _DISTANCE_MASK:
+            if measuring_mode not in DISTANCE_MASK:
                 raise ProtocolError(f"unknown measuring mode {measuring_mode}")
             raw[5] = measuring_mode
         if unit_mm is not None:

@@ -18,8 +18,8 @@ import numpy as np
 
 from sensors.lms200.protocol.stream import Telegram
 from sensors.lms200.protocol.telegram import (
-    _DISTANCE_MASK,
-    _FLAG_SHIFT,
+    DISTANCE_MASK,
+    FLAG_SHIFT,
     TURN_S,
     ProtocolError,
     reply_frame,
@@ -113,7 +113,7 @@ def decode_scan(telegram: Telegram, measuring_mode: int = 1) -> Scan:
     """
     if telegram.code != 0xB0:
         raise ProtocolError(f"not a measured-values reply: code {telegram.code:#04x}")
-    if measuring_mode not in _DISTANCE_MASK:
+    if measuring_mode not in DISTANCE_MASK:
         raise ProtocolError(f"unknown measuring mode {measuring_mode}")
     data = telegram.data
     if len(data) < 2:
@@ -133,9 +133,9 @@ def decode_scan(telegram: Telegram, measuring_mode: int = 1) -> Scan:
     offset_deg = 0.25 * ((count_word >> 11) & 0x03) if partial else 0.0
     bearings = _bearings(count, partial, offset_deg)
     raw = np.frombuffer(data, dtype="<u2", count=count, offset=2).astype(np.uint16)
-    mask = _DISTANCE_MASK[measuring_mode]
+    mask = DISTANCE_MASK[measuring_mode]
     distance = (raw & mask).astype(np.int64)
-    flags = (raw.astype(np.uint32) >> _FLAG_SHIFT[measuring_mode]).astype(np.uint8)
+    flags = (raw.astype(np.uint32) >> FLAG_SHIFT[measuring_mode]).astype(np.uint8)
     gap = mask - distance
     code = np.zeros(count, dtype=np.uint8)
     special = gap <= 8
@@ -186,7 +186,7 @@ def encode_scan(
     count = len(ranges_m)
     if count not in _VARIANT_BY_COUNT:
         raise ProtocolError(f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}")
-    mask = _DISTANCE_MASK[measuring_mode]
+    mask = DISTANCE_MASK[measuring_mode]
     unit_m = 0.001 if unit_mm else 0.01
     with np.errstate(invalid="ignore"):
         distance = np.round(ranges_m / unit_m)
@@ -199,7 +199,7 @@ def encode_scan(
         special |= codes != SpecialCode.VALID
     words = np.where(special, mask - gaps, np.nan_to_num(distance)).astype(np.uint32)
     if flags is not None:
-        shift = _FLAG_SHIFT[measuring_mode]
+        shift = FLAG_SHIFT[measuring_mode]
         limit = (0xFFFF >> shift) if shift < 16 else 0
         flag_bits = np.clip(np.asarray(flags, dtype=np.uint32), 0, limit)
         words |= (flag_bits << shift) & (0xFFFF ^ mask)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from sensors.lms200.protocol.telegram import MAX_LEN, STX, ProtocolError, _checksum, checksum
+from sensors.lms200.protocol.telegram import MAX_LEN, STX, ProtocolError, checksum, checksum_kernel
 
 __all__ = [
     "Event",
@@ -47,7 +47,7 @@ def _frame_at(buf: np.ndarray, p: int, direction: int, max_len: int) -> int:  # 
     end = p + length + 6
     if end > n:
         return _INCOMPLETE
-    if _checksum(buf, p, end - 2) != (buf[end - 2] | (buf[end - 1] << 8)):
+    if checksum_kernel(buf, p, end - 2) != (buf[end - 2] | (buf[end - 1] << 8)):
         return _BAD_CHECKSUM
     return length + 6
 

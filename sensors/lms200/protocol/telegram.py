@@ -22,11 +22,14 @@ from sensors.errors import SensorError
 __all__ = [
     "ACK",
     "BAUD_RATES",
+    "DISTANCE_MASK",
+    "FLAG_SHIFT",
     "MAX_LEN",
     "NAK",
     "STX",
     "ProtocolError",
     "checksum",
+    "checksum_kernel",
     "frame",
     "reply_frame",
 ]
@@ -47,10 +50,10 @@ MODE_ON_REQUEST: Final = 0x25
 MODE_TEST_PASSWORD: Final = 0x30
 
 #: Distance mask and flag shift per measuring mode (block D), §6.2.
-_DISTANCE_MASK: Final = {
+DISTANCE_MASK: Final = {
     0: 0x1FFF, 1: 0x1FFF, 2: 0x1FFF, 3: 0x3FFF, 4: 0x3FFF, 5: 0x7FFF, 6: 0x7FFF, 15: 0x7FFF,
 }  # fmt: skip
-_FLAG_SHIFT: Final = {0: 13, 1: 13, 2: 13, 3: 14, 4: 14, 5: 15, 6: 15, 15: 16}
+FLAG_SHIFT: Final = {0: 13, 1: 13, 2: 13, 3: 14, 4: 14, 5: 15, 6: 15, 15: 16}
 
 
 class ProtocolError(SensorError):
@@ -62,7 +65,7 @@ class ProtocolError(SensorError):
 
 
 @njit(cache=True)
-def _checksum(buf: np.ndarray, start: int, stop: int) -> int:  # pragma: no cover - numba
+def checksum_kernel(buf: np.ndarray, start: int, stop: int) -> int:  # pragma: no cover - numba
     register = 0
     previous = 0
     for k in range(start, stop):
@@ -76,7 +79,7 @@ def _checksum(buf: np.ndarray, start: int, stop: int) -> int:  # pragma: no cove
 def checksum(data: bytes | bytearray | memoryview) -> int:
     """SICK's checksum over ``data`` (STX through the last byte before the checksum), §3.1."""
     buf = np.frombuffer(bytes(data), dtype=np.uint8)
-    return int(_checksum(buf, 0, len(buf)))
+    return int(checksum_kernel(buf, 0, len(buf)))
 
 
 def _framed(addr: int, body: bytes) -> bytes:
