@@ -158,6 +158,9 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     dataset = Path(dataset_dir)
     result = Path(result_dir) if result_dir is not None else dataset / "result"
     report_path = result / "report.json"
+    if result.is_symlink():
+        raise EstimationError(f"{result}: is a symbolic link; evaluate writes metrics.json only "
+                              "into a result folder itself")  # fmt: skip
     if not report_path.is_file():
         raise EstimationError(f"{result}: no result here (report.json missing): run coopmap batch")
     report = read_report(report_path)

@@ -62,3 +62,15 @@ def test_evaluate_on_a_foreign_report_exits_with_one_line(tmp_path: Path) -> Non
     assert result.exit_code == 2
     assert result.stderr.count("\n") == 1
     assert "not a coopmap report" in result.stderr
+
+
+def test_evaluate_does_not_write_through_a_linked_result(tmp_path: Path) -> None:
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "report.json").write_text(json.dumps(GOOD))
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "result").symlink_to(elsewhere)
+    result = CliRunner().invoke(app, ["evaluate", str(tmp_path / "ds")])
+    assert result.exit_code == 2
+    assert "is a symbolic link" in result.stderr
+    assert sorted(p.name for p in elsewhere.iterdir()) == ["report.json"]
