@@ -192,7 +192,9 @@ class RobotConfig(_Section):
 class GridConfig(_Section):
     """The 3D Bayesian occupancy grid (docs/design.md §6, paper eq. 3). Defaults are OctoMap's."""
 
-    resolution_m: float = Field(0.1, gt=0, le=10)
+    # At least 5 mm: finer cells than the LMS 200's range noise only multiply memory (a 0.5 mm
+    # grid of one building is terabytes).
+    resolution_m: float = Field(0.1, ge=0.005, le=10)
     prob_hit: float = Field(0.7, gt=0.5, lt=1)
     prob_miss: float = Field(0.4, gt=0, lt=0.5)
     clamp_min: float = Field(0.1192, gt=0, lt=1)
