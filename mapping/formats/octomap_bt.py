@@ -40,6 +40,9 @@ __all__ = [
 BT_HEADER = "# Octomap OcTree binary file"
 TREE_DEPTH = 16
 KEY_OFFSET = 1 << (TREE_DEPTH - 1)
+#: The most cells ``BtTree.expand`` produces (about 1.6 GB of cell indices); geb079, a whole
+#: building at 5 cm, covers 1.1 M.
+MAX_EXPANDED_CELLS = 1 << 26
 _FREE, _OCCUPIED, _INNER = 1, 2, 3
 _MAX_HEADER_BYTES = 4096
 
@@ -72,11 +75,29 @@ class BtTree:
         half = self.edge_cells[:, None] / 2.0
         return np.asarray((self.keys - KEY_OFFSET + half) * self.resolution_m)
 
+    def cell_count(self, z_range_cells: tuple[int, int] | None = None) -> int:
+        """How many cells the leaves cover (within the layers of ``z_range_cells``)."""
+        edge = self.edge_cells.astype(np.int64)
+        layers = edge
+        if z_range_cells is not None:
+            low = self.keys[:, 2].astype(np.int64) - KEY_OFFSET
+            top = np.minimum(low + edge - 1, z_range_cells[1])
+            layers = np.clip(top - np.maximum(low, z_range_cells[0]) + 1, 0, None)
+        return int(np.sum(edge * edge * layers, dtype=np.float64))
+
     def expand(self, z_range_cells: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Every cell the leaves cover: (N, 3) cell indices (key − 32768) and (N,) occupied.
 
-        ``z_range_cells`` (k_first, k_last) keeps only the cells of those layers.
+        ``z_range_cells`` (k_first, k_last) keeps only the cells of those layers. A tree whose
+        leaves cover more than ``MAX_EXPANDED_CELLS`` cells is refused before anything is
+        allocated (a few bytes of crafted tree can declare leaves of 2^45 cells).
         """
+        count = self.cell_count(z_range_cells)
+        if count > MAX_EXPANDED_CELLS:
+            raise MapError(
+                f"the tree's leaves cover {count:,} cells, more than the {MAX_EXPANDED_CELLS:,} "
+                "coopmap expands (coarse leaves of a huge or crafted tree)"
+            )
         cells, states = [], []
         for d in np.unique(self.depth):
             pick = self.depth == d

@@ -220,3 +220,25 @@ def test_other_errors(tmp_path: Path) -> None:
     with pytest.raises(MapError):
         write_bt(tmp_path / "x.bt", shifted)
     assert (tmp_path / "x.bt").read_bytes() == b"old"
+
+
+def test_a_tree_of_huge_leaves_is_refused_before_expanding() -> None:
+    from mapping.formats.octomap_bt import KEY_OFFSET, MAX_EXPANDED_CELLS, BtTree
+
+    # Eight occupied leaves at depth 2: each a cube of 2^14 cells a side (2^42 cells), which a
+    # few bytes of .bt declare.
+    corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]) << 14
+    tree = BtTree(0.1, "OcTree", corners, np.full(8, 2, dtype=np.int8), np.ones(8, bool), 9)
+    assert tree.cell_count() == 8 * (1 << 42)
+    with pytest.raises(MapError, match=r"leaves cover 35,184,372,088,832 cells, more than the"):
+        tree.expand()
+    with pytest.raises(MapError, match="more than the"):
+        grid_from_bt(tree)
+    # A band of one layer through them is still far too much; one small leaf is fine.
+    assert tree.cell_count((-1, -1)) == 4 * (1 << 28)  # cells are keys - KEY_OFFSET
+    small = BtTree(0.1, "OcTree", np.array([[KEY_OFFSET] * 3]), np.array([14], np.int8),
+                   np.ones(1, bool), 1)  # fmt: skip
+    cells, occupied = small.expand()
+    assert len(cells) == 64 == small.cell_count()
+    assert occupied.all()
+    assert small.cell_count() <= MAX_EXPANDED_CELLS
