@@ -19,6 +19,7 @@ __all__ = [
     "format_validation_error",
     "merge_mappings",
     "parse_yaml",
+    "read_file_bytes",
     "read_text_file",
     "read_yaml_mapping",
     "validate_mapping",
@@ -81,8 +82,8 @@ def merge_mappings(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
 YAML_LIMIT_BYTES = 16 * 2**20
 
 
-def read_text_file(path: Path | str, error: type[Exception], limit_bytes: int) -> str:
-    """The UTF-8 text of a regular file of at most ``limit_bytes``; else ``error``, one line.
+def read_file_bytes(path: Path | str, error: type[Exception], limit_bytes: int) -> bytes:
+    """The bytes of a regular file of at most ``limit_bytes``; else ``error``, one line.
 
     A FIFO, a device (``/dev/zero``) or a directory is refused before it is opened, so reading
     never blocks and never fills memory.
@@ -107,6 +108,12 @@ def read_text_file(path: Path | str, error: type[Exception], limit_bytes: int) -
         raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
     if len(data) > limit_bytes:
         raise error(f"{path}: more than the {limit_bytes:,} bytes expected")
+    return data
+
+
+def read_text_file(path: Path | str, error: type[Exception], limit_bytes: int) -> str:
+    """The UTF-8 text of a regular file of at most ``limit_bytes`` (see ``read_file_bytes``)."""
+    data = read_file_bytes(path, error, limit_bytes)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as exc:

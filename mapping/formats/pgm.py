@@ -25,12 +25,15 @@ import yaml
 from mapping.band import Band
 from mapping.errors import MapError
 from sensors.atomic import atomic_path, write_text_atomic
+from sensors.yamlio import YAML_LIMIT_BYTES, parse_yaml, read_file_bytes, read_text_file
 
 __all__ = ["UNKNOWN_PIXEL", "read_band_pgm", "write_band_pgm"]
 
 UNKNOWN_PIXEL = 205
 _DIGITS = re.compile(rb"\d+")
 _SPACE = (b" ", b"\t", b"\r", b"\n")
+#: An 8-bit map_server image of 32,000 × 32,000 cells; anything larger is not a map.
+PGM_LIMIT_BYTES = 2**30
 
 
 def write_band_pgm(
@@ -73,10 +76,7 @@ def write_band_pgm(
 
 
 def _read_pgm(path: Path) -> np.ndarray:
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise MapError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    data = read_file_bytes(path, MapError, PGM_LIMIT_BYTES)
     if not data.startswith(b"P5") or data[2:3] not in (*_SPACE, b"#"):
         raise MapError(f"{path}: not a binary PGM (P5) image")
     pos = 2
@@ -90,6 +90,8 @@ def _read_pgm(path: Path) -> np.ndarray:
         token = _DIGITS.match(data, pos)
         if token is None:
             raise MapError(f"{path}: malformed PGM header")
+        if len(token.group()) > 9:
+            raise MapError(f"{path}: PGM header number of {len(token.group())} digits")
         numbers.append(int(token.group()))
         pos = token.end()
     if data[pos : pos + 1] not in _SPACE:
@@ -119,12 +121,9 @@ def _number(path: Path, doc: dict[str, Any], key: str, default: float | None = N
 def read_band_pgm(yaml_path: Path | str) -> Band:
     """Read a ``map_server`` map (YAML + PGM) as a ``Band``; MapError on anything malformed."""
     yaml_path = Path(yaml_path)
-    try:
-        doc = yaml.safe_load(yaml_path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise MapError(f"{yaml_path}: cannot read: {exc.strerror or exc}") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise MapError(f"{yaml_path}: not valid YAML: {exc}") from None
+    doc = parse_yaml(
+        read_text_file(yaml_path, MapError, YAML_LIMIT_BYTES), str(yaml_path), MapError
+    )
     if not isinstance(doc, dict):
         raise MapError(f"{yaml_path}: a map description must be a YAML mapping")
     for key in ("image", "resolution", "origin"):

@@ -91,7 +91,7 @@ def test_reads_other_writers_headers_and_negate(tmp_path: Path) -> None:
         (b"P5\n3 2\n255\n", bytes(6), {"origin": [1.0, 2.0]}, r"origin must be \[x, y, yaw\]"),
         (b"P5\n3 2\n255\n", bytes(6), {"origin": [1.0, 2.0, 0.5]}, "rotated map"),
         (b"P5\n3 2\n255\n", bytes(6), {"negate": 2}, "negate must be 0 or 1"),
-        (b"P5\n3 2\n255\n", bytes(6), {"image": "absent.pgm"}, "absent.pgm: cannot read"),
+        (b"P5\n3 2\n255\n", bytes(6), {"image": "absent.pgm"}, "absent.pgm: no such file"),
     ],
 )
 def test_bad_maps_are_clear_errors(
@@ -104,7 +104,7 @@ def test_bad_maps_are_clear_errors(
 def test_bad_descriptions_are_clear_errors(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text("image: [unclosed\n")
-    with pytest.raises(MapError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(MapError, match=r"bad\.yaml: malformed YAML"):
         read_band_pgm(path)
     path.write_text("- a list\n")
     with pytest.raises(MapError, match="must be a YAML mapping"):
@@ -112,7 +112,7 @@ def test_bad_descriptions_are_clear_errors(tmp_path: Path) -> None:
     path.write_text("image: m.pgm\nresolution: 0.1\n")
     with pytest.raises(MapError, match="missing key 'origin'"):
         read_band_pgm(path)
-    with pytest.raises(MapError, match=r"absent\.yaml: cannot read"):
+    with pytest.raises(MapError, match=r"absent\.yaml: no such file"):
         read_band_pgm(tmp_path / "absent.yaml")
     with pytest.raises(MapError, match=r"must be a \.yaml file"):
         write_band_pgm(tmp_path / "map.png", sample_band())
@@ -134,3 +134,19 @@ def test_a_failed_write_keeps_the_old_files(
         write_band_pgm(yaml_path, sample_band())
     assert (tmp_path / "ceiling.yaml").read_bytes() == before["ceiling.yaml"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ceiling.pgm", "ceiling.yaml"]
+
+
+def test_absurd_headers_pipes_and_aliases_are_clear_errors(tmp_path: Path) -> None:
+    import os
+
+    (tmp_path / "map.yaml").write_text("image: map.pgm\nresolution: 0.1\norigin: [0, 0, 0]\n")
+    (tmp_path / "map.pgm").write_bytes(b"P5\n" + b"9" * 5000 + b" 2\n255\n" + bytes(6))
+    with pytest.raises(MapError, match=r"map\.pgm: PGM header number of 5000 digits"):
+        read_band_pgm(tmp_path / "map.yaml")
+    (tmp_path / "map.pgm").unlink()
+    os.mkfifo(tmp_path / "map.pgm")
+    with pytest.raises(MapError, match=r"map\.pgm: not a regular file"):
+        read_band_pgm(tmp_path / "map.yaml")  # returns at once: the FIFO is never opened
+    (tmp_path / "alias.yaml").write_text("a: &a [1, 2]\nimage: *a\n")
+    with pytest.raises(MapError, match=r"alias\.yaml: malformed YAML .*aliases"):
+        read_band_pgm(tmp_path / "alias.yaml")

@@ -114,7 +114,7 @@ def test_unreadable_pgm_is_one_line_error(files: tuple[Path, Path], tmp_path: Pa
     code, _, stderr = run("localize", "--map", str(map_yaml), "--scan", str(bad))
     assert_one_line_error(code, stderr, r"bad\.pgm: not a binary PGM")
     code, _, stderr = run("localize", "--map", str(tmp_path / "missing.yaml"), "--scan", str(bad))
-    assert_one_line_error(code, stderr, "missing.yaml: cannot read")
+    assert_one_line_error(code, stderr, "missing.yaml: no such file")
 
 
 def test_mismatched_resolution_is_one_line_error(files: tuple[Path, Path], tmp_path: Path) -> None:
