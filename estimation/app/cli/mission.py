@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -131,7 +131,19 @@ def batch(
         f"poses: {poses}; {r.get('occupied_voxels', 0):,} occupied voxels; "
         f"{r['timings_s']['total']:.1f} s"
     )
+    warn_unplaced(r)
     make_console().print(f"  wrote {output.out_dir}/")
+
+
+def warn_unplaced(report: dict[str, Any]) -> None:
+    """Say so on stderr when a robot ended with no pose: nothing tied it to the map."""
+    lost = [name for name, s in report["robots"].items() if not s["poses"]]
+    for name in lost:
+        typer.echo(
+            f"coopmap: warning: robot {name} has no pose in the result: no mutual observation "
+            "tied it to the map (see unseen_pairs and missing_sweeps in report.json)",
+            err=True,
+        )
 
 
 @cli_errors
@@ -159,6 +171,7 @@ def isam(
         + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
         f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
     )
+    warn_unplaced(output.report)
     make_console().print(f"  wrote {output.out_dir}/")
 
 

@@ -126,7 +126,7 @@ def test_bad_config_is_one_line(tmp_path: Path) -> None:
     cfg.write_text("grid: {resolution_m: -0.1}\n", encoding="utf-8")
     assert_one_line_error(
         *run("world", "show", "essex_lab", "--out", str(tmp_path / "x.png"), "--config", str(cfg)),
-        r"cfg\.yaml: grid\.resolution_m: Input should be greater than 0 \(got -0\.1\)",
+        r"cfg\.yaml: grid\.resolution_m: Input should be greater than or equal to 0\.005 \(got -0\.1\)",
     )
     assert_one_line_error(
         *run("demo", "--out", str(tmp_path / "d"), "--config", str(tmp_path / "none.yaml")),
@@ -189,3 +189,15 @@ def test_console_script_errors_without_traceback(tmp_path: Path) -> None:
     assert proc.returncode == 2
     assert proc.stderr.strip() == f"coopmap: error: {tmp_path / 'nope.yaml'}: no such file"
     assert proc.stdout == ""
+
+
+def test_a_robot_left_without_poses_is_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
+    from estimation.app.cli.mission import warn_unplaced
+
+    warn_unplaced({"robots": {"a": {"poses": 3}, "c": {"poses": 0}, "d": {"poses": 0}}})
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2
+    assert err[0].startswith("coopmap: warning: robot c has no pose in the result")
+    assert "robot d" in err[1]
+    warn_unplaced({"robots": {"a": {"poses": 3}}})
+    assert capsys.readouterr().err == ""
