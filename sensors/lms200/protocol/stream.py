@@ -71,10 +71,14 @@ def _scan_stream(  # pragma: no cover - numba
     skipped = 0
     failures = 0
     p = 0
+    # Bytes inside a frame that failed its checksum are that frame's payload, not handshakes:
+    # the scan resumes after its STX (a real frame may start inside it) but reports no ACK or
+    # NAK before the rejected frame's end.
+    quiet_until = 0
     while p < n:
         byte = buf[p]
         if byte != 0x02:
-            if byte == 0x06 or byte == 0x15:
+            if (byte == 0x06 or byte == 0x15) and p >= quiet_until:
                 kinds[count] = 1 if byte == 0x06 else 2
                 offsets[count] = p
                 lengths[count] = 1
@@ -98,6 +102,7 @@ def _scan_stream(  # pragma: no cover - numba
             continue
         if size < 0:
             if size == _BAD_CHECKSUM:
+                quiet_until = max(quiet_until, p + (buf[p + 2] | (buf[p + 3] << 8)) + 6)
                 failures += 1
                 if report_failures:
                     kinds[count] = 3

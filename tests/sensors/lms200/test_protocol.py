@@ -371,6 +371,32 @@ def test_parser_resyncs_after_garbage_bad_checksum_truncation_and_absurd_length(
     assert parser.stats.bytes_skipped == len(stream) - sum(len(g) for g in good)
 
 
+def test_bytes_inside_a_frame_with_a_bad_checksum_are_not_handshakes() -> None:
+    reply = encode_mode_reply(0)
+    payload = bytes([0x06, 0x15] * 20)  # what would read as ACK, NAK, ACK, … outside a frame
+    corrupt = bytearray(reply_frame(0xB0, payload))
+    corrupt[-1] ^= 0xFF  # bad checksum
+    stream = bytes(corrupt) + b"\x06" + reply + b"\x15"
+    parser = StreamParser()
+    events = parser.feed(stream)
+    handshakes = [e for e in events if isinstance(e, Handshake)]
+    assert [(h.ack, h.offset) for h in handshakes] == [
+        (True, len(corrupt)),
+        (False, len(stream) - 1),
+    ]
+    assert [e.raw for e in events if isinstance(e, Telegram)] == [reply]
+    assert (parser.stats.acks, parser.stats.naks, parser.stats.checksum_failures) == (1, 1, 1)
+    assert parser.stats.bytes_skipped == len(corrupt)
+
+
+def test_random_bytes_hold_no_more_handshakes_than_their_lone_06_and_15() -> None:
+    data = np.random.default_rng(7).integers(0, 256, 200_000, dtype=np.uint8).tobytes()
+    parser = StreamParser()
+    handshakes = sum(isinstance(e, Handshake) for e in parser.feed(data) + parser.close())
+    assert handshakes <= data.count(b"\x06") + data.count(b"\x15")
+    assert handshakes == parser.stats.acks + parser.stats.naks
+
+
 def test_a_false_start_does_not_hold_back_a_reply() -> None:
     # A stray `02 80` with a plausible length (515) before a complete reply: the reply must be
     # delivered now — a driver waiting for it would otherwise time out — and at end of stream.
