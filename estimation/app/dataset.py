@@ -138,6 +138,10 @@ def _finite(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def _is_index(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
 def _check_event(event: dict[str, Any], robots: list[str], where: str) -> None:
     """The fields ``build_events`` reads, with their types (docs/dataset.md)."""
     kind = event["event"]
@@ -148,9 +152,10 @@ def _check_event(event: dict[str, Any], robots: list[str], where: str) -> None:
         if robot not in robots:
             raise ConfigError(f"{where}: move of robot {robot!r}, not one of the mission's robots")
         for key in ("from_index", "to_index"):
-            value = event.get(key)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 0):
-                raise ConfigError(f"{where}: move: {key} must be an index >= 0, got {value!r}")
+            if not _is_index(event.get(key)):
+                raise ConfigError(
+                    f"{where}: move: {key} must be an index >= 0, got {event.get(key)!r}"
+                )
         if event["to_index"] != event["from_index"] + 1:
             raise ConfigError(f"{where}: move: to_index must be from_index + 1")
         if not _finite(event.get("start_s")) or event["start_s"] > event["t_s"]:
@@ -165,7 +170,7 @@ def _check_event(event: dict[str, Any], robots: list[str], where: str) -> None:
                 f"({', '.join(robots)}), got {poses!r}"
             )
         for robot, index in poses.items():
-            if not (isinstance(index, int) and not isinstance(index, bool) and index >= 0):
+            if not _is_index(index):
                 raise ConfigError(f"{where}: dwell: poses.{robot} must be an index >= 0")
         for role in ("reference", "mapper"):
             if event.get(role) is not None and event[role] not in robots:
