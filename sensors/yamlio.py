@@ -7,6 +7,7 @@ document and the offending value, e.g. ``grid.resolution_m: must be > 0 (got -0.
 
 from __future__ import annotations
 
+import os
 import stat
 from pathlib import Path
 from typing import Any, TypeVar
@@ -22,6 +23,7 @@ __all__ = [
     "read_file_bytes",
     "read_text_file",
     "read_yaml_mapping",
+    "regular_file",
     "validate_mapping",
 ]
 
@@ -82,11 +84,11 @@ def merge_mappings(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
 YAML_LIMIT_BYTES = 16 * 2**20
 
 
-def read_file_bytes(path: Path | str, error: type[Exception], limit_bytes: int) -> bytes:
-    """The bytes of a regular file of at most ``limit_bytes``; else ``error``, one line.
+def regular_file(path: Path | str, error: type[Exception]) -> os.stat_result:
+    """The status of ``path`` if it is a regular file; else ``error``, one line.
 
     A FIFO, a device (``/dev/zero``) or a directory is refused before it is opened, so reading
-    never blocks and never fills memory.
+    it never blocks and never fills memory.
     """
     path = Path(path)
     try:
@@ -99,6 +101,13 @@ def read_file_bytes(path: Path | str, error: type[Exception], limit_bytes: int) 
         raise error(f"{path}: is a directory, expected a file") from None
     if not stat.S_ISREG(info.st_mode):
         raise error(f"{path}: not a regular file (a pipe or a device?)")
+    return info
+
+
+def read_file_bytes(path: Path | str, error: type[Exception], limit_bytes: int) -> bytes:
+    """The bytes of a regular file (``regular_file``) of at most ``limit_bytes``; else ``error``."""
+    path = Path(path)
+    info = regular_file(path, error)
     if info.st_size > limit_bytes:
         raise error(f"{path}: {info.st_size:,} bytes, more than the {limit_bytes:,} expected")
     try:

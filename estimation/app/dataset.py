@@ -47,6 +47,8 @@ __all__ = [
     "decode_robot",
     "load_dataset",
     "mapping_sweeps",
+    "parse_event",
+    "read_robots",
     "relocalization_dwells",
     "stations",
     "sweep_in",
@@ -89,7 +91,7 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     mission = read_yaml_mapping(mission_file, ConfigError)
     if "robots" not in mission:
         raise ConfigError(f"{mission_file}: not a mission (no robots)")
-    robots, starts = _robots(mission["robots"], mission_file)
+    robots, starts = read_robots(mission["robots"], mission_file)
     config_doc = mission.get("config") or {}
     if not isinstance(config_doc, dict):
         raise ConfigError(f"{mission_file}: config: must be a mapping")
@@ -98,20 +100,24 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     events = []
     text = read_text_file(events_file, ConfigError, EVENTS_LIMIT_BYTES)
     for number, line in enumerate(text.splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            event = json.loads(line)
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{events_file}:{number}: not JSON: {exc.msg}") from None
-        if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
-            raise ConfigError(f"{events_file}:{number}: an event needs 'event' and 't_s'")
-        _check_event(event, robots, f"{events_file}:{number}")
-        events.append(event)
+        if line.strip():
+            events.append(parse_event(line, robots, f"{events_file}:{number}"))
     return Dataset(path, config, robots, starts, events, mission)
 
 
-def _robots(entries: Any, source: Path) -> tuple[list[str], dict[str, np.ndarray]]:
+def parse_event(line: str, robots: list[str], where: str) -> dict[str, Any]:
+    """One line of ``events.jsonl``, checked for the fields ``build_events`` reads."""
+    try:
+        event = json.loads(line)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{where}: not JSON: {exc.msg}") from None
+    if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
+        raise ConfigError(f"{where}: an event needs 'event' and 't_s'")
+    _check_event(event, robots, where)
+    return event
+
+
+def read_robots(entries: Any, source: Path | str) -> tuple[list[str], dict[str, np.ndarray]]:
     """The mission's robot names (one lowercase letter each, unique) and start poses."""
     if not isinstance(entries, list) or len(entries) < 1:
         raise ConfigError(f"{source}: robots: must be a list of {{name, start}}")

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+import mmap
 import os
 import struct
 import time
@@ -32,6 +33,7 @@ from sensors.lms200.protocol.replies import decode_reply
 from sensors.lms200.protocol.scan import decode_scan
 from sensors.lms200.protocol.stream import Event, Handshake, Rejected, StreamParser
 from sensors.lms200.protocol.telegram import ProtocolError
+from sensors.yamlio import regular_file
 
 __all__ = [
     "CaptureError",
@@ -46,6 +48,10 @@ MAGIC = b"COOPMAP-LMSCAP 1\n"
 _RECORD = struct.Struct("<dI")
 #: Largest record a reader accepts (a serial read never returns more in one go).
 MAX_RECORD = 1 << 24
+#: Stamps of consecutive records: at most this far back (clock jitter) ...
+STAMP_SLACK_S = 1.0
+#: ... and this far ahead (a recording paused for a day is still one capture).
+MAX_RECORD_GAP_S = 86400.0
 
 
 class CaptureError(SensorError):
@@ -116,7 +122,8 @@ class CaptureWriter:
 class CaptureReader:
     """Chunks of a capture (with stamps) or of a plain binary dump (stamps None).
 
-    ``truncated_bytes`` counts the bytes of an incomplete last record, dropped while reading.
+    ``truncated_bytes`` counts the bytes of an incomplete last record, dropped while reading;
+    ``corrupt_bytes`` and ``resyncs`` count what was skipped after corrupted record headers.
     """
 
     header: dict[str, Any] | None
@@ -124,7 +131,10 @@ class CaptureReader:
     def __init__(self, path: Path | str) -> None:
         self.path = Path(path)
         self.truncated_bytes = 0
+        self.corrupt_bytes = 0
+        self.resyncs = 0
         self._offset = 0
+        regular_file(self.path, CaptureError)
         try:
             with open(self.path, "rb") as handle:
                 head = handle.read(len(MAGIC))
@@ -144,10 +154,6 @@ class CaptureReader:
                 else:
                     self.header = None
                     self._offset = 0
-        except FileNotFoundError:
-            raise CaptureError(f"{self.path}: no such file") from None
-        except IsADirectoryError:
-            raise CaptureError(f"{self.path}: is a directory, expected a capture") from None
         except OSError as exc:
             raise CaptureError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
 
@@ -156,28 +162,71 @@ class CaptureReader:
         return self.header is not None
 
     def chunks(self, dump_chunk: int = 1 << 16) -> Iterator[tuple[float | None, bytes]]:
-        """(stamp_s, bytes) in file order; a truncated last record is counted, not raised."""
+        """(stamp_s, bytes) in file order.
+
+        A truncated last record is counted in ``truncated_bytes``. A corrupted record header
+        (an impossible size or stamp) is skipped: the reader searches forward for the next
+        header that is plausible and followed by another plausible header (or the end of the
+        file), counting the bytes passed over in ``corrupt_bytes`` and each search in
+        ``resyncs``; the stream parser then resynchronises on the telegrams themselves.
+        """
         with open(self.path, "rb") as handle:
             handle.seek(self._offset)
             if not self.is_capture:
                 while chunk := handle.read(dump_chunk):
                     yield None, chunk
                 return
-            while head := handle.read(_RECORD.size):
-                if len(head) < _RECORD.size:
-                    self.truncated_bytes += len(head)
-                    return
-                stamp, size = _RECORD.unpack(head)
-                if size > MAX_RECORD or not math.isfinite(stamp):
-                    raise CaptureError(
-                        f"{self.path}: corrupt record at byte {handle.tell() - _RECORD.size} "
-                        f"(size {size}, stamp {stamp})"
-                    )
-                body = handle.read(size)
-                if len(body) < size:
-                    self.truncated_bytes += _RECORD.size + len(body)
-                    return
-                yield stamp, body
+            size = os.fstat(handle.fileno()).st_size
+            if size <= self._offset:
+                return
+            with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as view:
+                yield from self._records(view, size)
+
+    def _records(self, view: mmap.mmap, end: int) -> Iterator[tuple[float, bytes]]:
+        pos, last = self._offset, None
+        while pos < end:
+            if end - pos < _RECORD.size:
+                self.truncated_bytes += end - pos
+                return
+            stamp, size = _RECORD.unpack_from(view, pos)
+            if not _plausible(stamp, size, last):
+                found = self._resync(view, pos + 1, end, last)
+                self.resyncs += 1
+                self.corrupt_bytes += found - pos
+                pos = found
+                continue
+            body_end = pos + _RECORD.size + size
+            if body_end > end:
+                self.truncated_bytes += end - pos
+                return
+            yield stamp, bytes(view[pos + _RECORD.size : body_end])
+            last, pos = stamp, body_end
+
+    @staticmethod
+    def _resync(view: mmap.mmap, pos: int, end: int, last: float | None) -> int:
+        """The first offset from ``pos`` where two plausible records follow each other."""
+        while pos + _RECORD.size <= end:
+            stamp, size = _RECORD.unpack_from(view, pos)
+            if _plausible(stamp, size, last):
+                after = pos + _RECORD.size + size
+                if after == end:
+                    return pos
+                if after + _RECORD.size <= end:
+                    next_stamp, next_size = _RECORD.unpack_from(view, after)
+                    if _plausible(next_stamp, next_size, stamp):
+                        return pos
+            pos += 1
+        return end
+
+
+def _plausible(stamp: float, size: int, last: float | None) -> bool:
+    """A record header the writer could have written after one stamped ``last``.
+
+    The writer never writes an empty record, and its stamps come from one monotonic clock.
+    """
+    if not (0 < size <= MAX_RECORD and math.isfinite(stamp)):
+        return False
+    return last is None or last - STAMP_SLACK_S <= stamp <= last + MAX_RECORD_GAP_S
 
 
 # --------------------------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import sys
 
 import typer
 
-from estimation.app.cli import bench, lms, localize, mission, world
+from estimation.app.cli import bench, dataset, lms, localize, mission, world
 
 __all__ = ["app", "main"]
 
@@ -35,6 +35,7 @@ app.add_typer(world.world_app, name="world")
 app.add_typer(world.config_app, name="config")
 app.add_typer(bench.bench_app, name="bench")
 app.add_typer(lms.lms_app, name="lms")
+app.add_typer(dataset.dataset_app, name="dataset")
 
 
 def main() -> None:

@@ -100,11 +100,69 @@ def test_corrupt_headers_are_clear_errors(tmp_path: Path, content: bytes, messag
         CaptureReader(path)
 
 
-def test_corrupt_record_is_a_clear_error(tmp_path: Path) -> None:
+def numbered_capture(path: Path, records: int = 40) -> list[tuple[float, bytes]]:
+    written = [(0.01 * k, bytes([k]) * (5 + k % 7)) for k in range(records)]
+    with CaptureWriter(path) as writer:
+        for stamp, chunk in written:
+            writer.write(stamp, chunk)
+    return written
+
+
+def test_a_corrupt_record_header_is_skipped_and_reading_goes_on(tmp_path: Path) -> None:
+    path = tmp_path / "bad.cap"
+    written = numbered_capture(path)
+    data = bytearray(path.read_bytes())
+    header = CaptureReader(path)._offset
+    # Record 10's header: its size becomes 4 GiB (impossible), its stamp NaN.
+    at = header + sum(12 + len(c) for _, c in written[:10])
+    data[at : at + 12] = b"\xff" * 12
+    path.write_bytes(bytes(data))
+    reader = CaptureReader(path)
+    chunks = list(reader.chunks())
+    assert chunks == written[:10] + written[11:]  # only the damaged record is lost
+    assert reader.resyncs == 1
+    assert reader.corrupt_bytes == 12 + len(written[10][1])
+    assert reader.truncated_bytes == 0
+
+
+def test_zeroed_and_random_stretches_lose_only_the_records_they_hit(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    path = tmp_path / "bad.cap"
+    written = numbered_capture(path, 200)
+    clean = path.read_bytes()
+    header = CaptureReader(path)._offset
+    starts = np.cumsum([header] + [12 + len(c) for _, c in written])
+    for fill in (bytes(300), rng.bytes(300)):
+        data = bytearray(clean)
+        at = int(starts[50]) + 7
+        data[at : at + 300] = fill
+        path.write_bytes(bytes(data))
+        reader = CaptureReader(path)
+        chunks = list(reader.chunks())
+        hit = {k for k in range(200) if starts[k] < at + 300 and starts[k + 1] > at}
+        assert chunks == [w for k, w in enumerate(written) if k not in hit]
+        assert reader.resyncs >= 1
+        assert reader.corrupt_bytes == int(starts[max(hit) + 1] - starts[min(hit)])
+
+
+def test_a_capture_that_is_garbage_after_its_header_yields_nothing(tmp_path: Path) -> None:
     path = tmp_path / "bad.cap"
     path.write_bytes(b"COOPMAP-LMSCAP 1\n{}\n" + b"\x00" * 8 + b"\xff\xff\xff\xff" + b"data")
-    with pytest.raises(CaptureError, match=r"corrupt record at byte 20 \(size 4294967295"):
-        list(CaptureReader(path).chunks())
+    reader = CaptureReader(path)
+    assert list(reader.chunks()) == []
+    assert reader.corrupt_bytes == 16
+    assert reader.resyncs == 1
+
+
+def test_a_pipe_is_refused_before_it_is_opened(tmp_path: Path) -> None:
+    import os
+
+    fifo = tmp_path / "lms.cap"
+    os.mkfifo(fifo)
+    with pytest.raises(CaptureError, match="not a regular file"):
+        CaptureReader(fifo)
+    with pytest.raises(CaptureError, match="is a directory"):
+        CaptureReader(tmp_path)
 
 
 def test_writer_never_clobbers_and_missing_files_are_errors(tmp_path: Path) -> None:
