@@ -216,9 +216,11 @@ class Lms200:
         while True:
             for event in self._read_events(doing):
                 if isinstance(event, Handshake):
-                    if not event.ack and not acked:
+                    # The sensor answers a command once; a 06 before a 15 was a stray byte
+                    # of an earlier stream, and the NAK is the answer.
+                    if not event.ack:
                         return "nak"
-                    acked = acked or event.ack
+                    acked = True
                 elif isinstance(event, Telegram):
                     if event.code == reply_code:
                         return event

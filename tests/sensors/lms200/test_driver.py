@@ -200,3 +200,28 @@ def test_tap_sees_every_byte(emulator: Lms200Emulator) -> None:
     telegrams = [e for e in parser.feed(bytes(seen)) if isinstance(e, Telegram)]
     assert sum(t.code == 0xB0 for t in telegrams) >= 3
     assert {0xA0, 0xBA, 0xB1, 0xF4} <= {t.code for t in telegrams}
+
+
+def test_closing_against_a_sensor_that_naks_everything_is_quick(emulator: Lms200Emulator) -> None:
+    """A NAK is the sensor's answer even when a stray 06 byte of the stream came first."""
+    driver = Lms200(emulator.device_path, baud_rate=38400)  # the default timeouts
+    driver.start()
+    list(driver.scans(limit=3))
+    emulator.nak_next = 1000
+    started = time.monotonic()
+    driver.close()
+    assert time.monotonic() - started < 1.5
+    assert emulator.state.naks_sent >= 3  # every try was NAKed and retried
+
+
+def test_a_nak_after_a_stray_ack_byte_is_a_nak() -> None:
+    """06 then 15 before the reply: the 06 was stray (the sensor answers once), the NAK counts."""
+    driver = fast_driver("loop://")
+    driver.open(9600)
+    try:
+        driver._port.write(b"\x06\x15")
+        started = time.monotonic()
+        assert driver._await(0xA0, "testing", timeout_s=2.0) == "nak"
+        assert time.monotonic() - started < 0.5
+    finally:
+        driver.close()
