@@ -35,10 +35,27 @@ from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
 from sensors.atomic import atomic_path
 
-__all__ = ["MAP_FORMAT", "MAP_VERSION", "load_map", "save_map"]
+__all__ = [
+    "MAP_FORMAT",
+    "MAP_VERSION",
+    "MAX_DENSE_CELLS",
+    "MAX_SPARSITY",
+    "SMALL_MAP_CELLS",
+    "load_map",
+    "save_map",
+]
 
 MAP_FORMAT = "coopmap.map"
 MAP_VERSION = 1
+#: The most cells a loaded map's blocks may hold (2 GiB of float64 log-odds).
+MAX_DENSE_CELLS = 2**28
+#: Blocks beyond this many cells must be at least 1/MAX_SPARSITY known (maps coopmap writes
+#: are about 1/3 known: rays fill the blocks they cross).
+SMALL_MAP_CELLS = 2**24
+MAX_SPARSITY = 64
+#: Room for an .npy header in a member's declared size.
+_NPY_HEADER = 4096
+_POPCOUNT = np.array([bin(v).count("1") for v in range(256)], dtype=np.uint8)
 _PARAM_KEYS = (
     "resolution_m",
     "prob_hit",
@@ -90,20 +107,43 @@ def _scalar(path: Path, data: dict[str, np.ndarray], key: str, kind: str) -> Any
 
 
 def load_map(path: Path | str) -> OccupancyGrid:
-    """Read a map written by ``save_map``; MapError on anything unexpected."""
+    """Read a map written by ``save_map``; MapError on anything unexpected.
+
+    Memory is bounded before it is spent: every array's size is checked from the zip directory
+    before it is decompressed, and the dense blocks are allocated only when they hold at most
+    ``MAX_DENSE_CELLS`` cells and the known cells fill at least 1/``MAX_SPARSITY`` of them (or
+    the whole map is small). Maps that coopmap writes are far denser; a crafted file of many
+    nearly empty blocks is refused instead of asking for gigabytes.
+    """
     path = Path(path)
     if not path.is_file():
         raise MapError(f"{path}: no such map file")
     try:
         with np.load(path, allow_pickle=False) as archive:
-            missing = [key for key in _KEYS if key not in archive.files]
-            if "format" in missing or "version" in missing:
-                raise MapError(f"{path}: not a coopmap map (no format/version entry)")
-            data = {key: archive[key] for key in _KEYS if key in archive.files}
+            return _read(path, archive)
     except MapError:
         raise
     except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
         raise MapError(f"{path}: not a readable coopmap map: {exc}") from None
+
+
+def _member(path: Path, archive: Any, key: str, limit_bytes: int) -> np.ndarray:
+    """One array of the archive, after checking its declared (uncompressed) size."""
+    size = archive.zip.getinfo(key + ".npy").file_size
+    if size > limit_bytes + _NPY_HEADER:
+        raise MapError(
+            f"{path}: {key} declares {size:,} bytes, more than the {limit_bytes + _NPY_HEADER:,} "
+            "its map can hold"
+        )
+    return np.asarray(archive[key])
+
+
+def _read(path: Path, archive: Any) -> OccupancyGrid:
+    missing = [key for key in _KEYS if key not in archive.files]
+    if "format" in missing or "version" in missing:
+        raise MapError(f"{path}: not a coopmap map (no format/version entry)")
+    small = [k for k in _KEYS if k not in ("block_coords", "known", "logodds")]
+    data = {k: _member(path, archive, k, 1024) for k in small if k in archive.files}
     if data["format"].shape != () or str(data["format"]) != MAP_FORMAT:
         raise MapError(f"{path}: not a coopmap map (format {data['format']!r})")
     version = _scalar(path, data, "version", "iu")
@@ -128,19 +168,32 @@ def load_map(path: Path | str) -> OccupancyGrid:
     except MapError as exc:
         raise MapError(f"{path}: {exc}") from None
     bs = params.block_size_cells
-    coords, known_bits, values = data["block_coords"], data["known"], data["logodds"]
+    cells = bs**3
+    max_blocks = MAX_DENSE_CELLS // cells
+    n_bytes = -(-cells // 8)
+    coords = _member(path, archive, "block_coords", 24 * max_blocks)
     if coords.ndim != 2 or coords.shape[1] != 3 or coords.dtype.kind not in "iu":
         raise MapError(f"{path}: block_coords must be (B, 3) integers, got {coords.shape}")
-    n_bytes = -(-(bs**3) // 8)
+    known_bits = _member(path, archive, "known", n_bytes * len(coords))
     if known_bits.shape != (len(coords), n_bytes) or known_bits.dtype != np.uint8:
         raise MapError(
             f"{path}: known must be ({len(coords)}, {n_bytes}) uint8, got {known_bits.shape} "
             f"{known_bits.dtype}"
         )
-    known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].astype(bool)
-    if values.ndim != 1 or values.dtype != np.float64 or len(values) != int(known.sum()):
+    if cells % 8:  # bits beyond the last cell of a block are padding
+        known_bits[:, -1] &= np.uint8((1 << (cells % 8)) - 1)
+    count = int(_POPCOUNT[known_bits].sum(dtype=np.int64))
+    dense = len(coords) * cells
+    if dense > MAX_DENSE_CELLS or (dense > SMALL_MAP_CELLS and dense > MAX_SPARSITY * count):
         raise MapError(
-            f"{path}: logodds must hold one float64 per known cell ({int(known.sum())}), "
+            f"{path}: {len(coords):,} blocks of {cells:,} cells hold only {count:,} known cells; "
+            f"a map is refused when its blocks exceed {MAX_DENSE_CELLS:,} cells, or "
+            f"{SMALL_MAP_CELLS:,} cells at under 1/{MAX_SPARSITY} known"
+        )
+    values = _member(path, archive, "logodds", 8 * count)
+    if values.ndim != 1 or values.dtype != np.float64 or len(values) != count:
+        raise MapError(
+            f"{path}: logodds must hold one float64 per known cell ({count}), "
             f"got {values.shape} {values.dtype}"
         )
     if not np.all(np.isfinite(values)):
@@ -151,6 +204,7 @@ def load_map(path: Path | str) -> OccupancyGrid:
             f"{path}: logodds outside the clamping bounds [{low:.6g}, {high:.6g}]: "
             f"[{values.min():.6g}, {values.max():.6g}]"
         )
+    known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, :cells].astype(bool)
     blocks = np.full(known.shape, np.nan)
     blocks[known] = values
     try:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import io
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +79,7 @@ def rewrite(path: Path, out: Path, **changes: object) -> Path:
         ({"version": None}, r"not a coopmap map \(no format/version entry\)"),
         ({"known": None}, "map is missing known"),
         ({"resolution_m": -0.1}, "resolution_m must be a positive number"),
-        ({"block_size_cells": 8}, r"known must be \(\d+, 64\) uint8"),
+        ({"block_size_cells": 8}, r"known declares [\d,]+ bytes, more than the [\d,]+ its map"),
         ({"logodds": np.zeros(3)}, "logodds must hold one float64 per known cell"),
         ({"block_coords": np.zeros((2, 2), int)}, r"block_coords must be \(B, 3\) integers"),
         ({"origin_m": [0.0, 0.0]}, "origin_m must be 3 floats"),
@@ -143,3 +145,66 @@ def test_a_failed_write_keeps_the_old_map(tmp_path: Path, monkeypatch: pytest.Mo
         save_map(path, OccupancyGrid())
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]  # no temporary left
+
+
+def crafted(path: Path, block_size: int, coords: np.ndarray, known: np.ndarray,
+            values: np.ndarray) -> Path:  # fmt: skip
+    arrays = {
+        "format": np.array("coopmap.map"), "version": np.array(1),
+        "resolution_m": np.array(0.1), "prob_hit": np.array(0.7), "prob_miss": np.array(0.4),
+        "clamp_min": np.array(0.12), "clamp_max": np.array(0.97),
+        "occupied_threshold": np.array(0.5), "no_return_free_m": np.array(0.0),
+        "block_size_cells": np.array(block_size), "origin_m": np.zeros(3),
+        "block_coords": coords, "known": known, "logodds": values,
+    }  # fmt: skip
+    np.savez_compressed(path, **arrays)
+    return path
+
+
+def peak_bytes(action: Callable[[], object]) -> int:
+    import tracemalloc
+
+    tracemalloc.start()
+    with contextlib.suppress(MapError):
+        action()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak
+
+
+def test_many_nearly_empty_blocks_are_refused_before_allocating(tmp_path: Path) -> None:
+    """60,000 blocks with one known cell each: 1.9 GB of dense blocks from a 1 MB file."""
+    n = 60_000
+    coords = np.stack([np.arange(n), np.zeros(n, int), np.zeros(n, int)], axis=1)
+    known = np.zeros((n, 512), np.uint8)
+    known[:, 0] = 1
+    path = crafted(tmp_path / "bomb.npz", 16, coords, known, np.zeros(n))
+    assert path.stat().st_size < 2e6
+    with pytest.raises(MapError, match="60,000 blocks of 4,096 cells hold only 60,000 known"):
+        load_map(path)
+    assert peak_bytes(lambda: load_map(path)) < 100e6
+
+
+def test_huge_empty_blocks_and_zip_bombs_are_refused_from_the_directory(tmp_path: Path) -> None:
+    coords = np.stack([np.arange(200), np.zeros(200, int), np.zeros(200, int)], axis=1)
+    known = np.zeros((200, 256**3 // 8), np.uint8)  # 200 empty 256-cube blocks: 3.4 GB dense
+    path = crafted(tmp_path / "empty.npz", 256, coords, known, np.zeros(0))
+    with pytest.raises(MapError, match="block_coords declares 4,928 bytes"):
+        load_map(path)
+    # A constant logodds array compresses 1000:1; its declared size gives it away.
+    coords = np.zeros((1, 3), int)
+    known = np.full((1, 512), 255, np.uint8)
+    path = crafted(tmp_path / "zip.npz", 16, coords, known, np.zeros(20_000_000))
+    assert path.stat().st_size < 1e6
+    with pytest.raises(MapError, match="logodds declares 160,000,128 bytes"):
+        load_map(path)
+    assert peak_bytes(lambda: load_map(path)) < 50e6
+
+
+def test_a_sparse_small_map_still_loads(tmp_path: Path) -> None:
+    """Below SMALL_MAP_CELLS any density is accepted (a few rays in a fresh map)."""
+    coords = np.stack([np.arange(100), np.zeros(100, int), np.zeros(100, int)], axis=1)
+    known = np.zeros((100, 512), np.uint8)
+    known[:, 0] = 1
+    grid = load_map(crafted(tmp_path / "sparse.npz", 16, coords, known, np.full(100, 0.5)))
+    assert grid.known_count() == 100
