@@ -112,7 +112,11 @@ def read_file_bytes(path: Path | str, error: type[Exception], limit_bytes: int) 
         raise error(f"{path}: {info.st_size:,} bytes, more than the {limit_bytes:,} expected")
     try:
         with path.open("rb") as handle:
-            data = handle.read(limit_bytes + 1)
+            # read(n) reserves n bytes first: ask for what the file holds (and one byte more,
+            # to notice a file that grew past the limit since it was measured).
+            data = handle.read(min(limit_bytes, info.st_size) + 1)
+            if info.st_size < len(data) <= limit_bytes:
+                data += handle.read(limit_bytes + 1 - len(data))
     except OSError as exc:
         raise error(f"{path}: cannot read: {exc.strerror or exc}") from None
     if len(data) > limit_bytes:

@@ -43,7 +43,11 @@ from estimation.search.peak import (
 )
 from mapping.band import Band
 
+#: The most poses ``search`` scores at once (float32 scores: 1 GiB), with the PDF over them.
+MAX_PDF_POSES = 2**28
+
 __all__ = [
+    "MAX_PDF_POSES",
     "SearchParams",
     "SearchResult",
     "WindowStep",
@@ -240,6 +244,14 @@ def search(
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)
+    poses = len(x_m) * len(y_m) * len(yaw_rad)
+    if poses > MAX_PDF_POSES:
+        raise EstimationError(
+            f"the whole-PDF search would score {poses:,} poses ({len(x_m)} × {len(y_m)} "
+            f"positions × {len(yaw_rad)} headings, {4 * poses / 2**30:.1f} GiB); at most "
+            f"{MAX_PDF_POSES:,} are scored at once: search a window around a prior, or a "
+            "coarser grid or angular resolution"
+        )
     scores, slices = correlate_lattice(
         local, global_, x_m, y_m, yaw_rad, params.metric, params.thread_count(), params.beta
     )
@@ -357,4 +369,5 @@ def windowed_search(
         dominant = result.peak_ratio >= params.dominance_ratio and not inner
         if dominant or covers or side >= max_window_m:
             return WindowedResult(result, tuple(steps), params.dominance_ratio)
+        del result  # the next, larger window's PDF must not sit beside this one
         side = min(2.0 * side, float(max_window_m))

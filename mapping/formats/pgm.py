@@ -102,13 +102,13 @@ def _read_pgm(path: Path) -> np.ndarray:
         raise MapError(f"{path}: only 8-bit PGM (maxval 255) is supported, got maxval {maxval}")
     if width <= 0 or height <= 0:
         raise MapError(f"{path}: empty image ({width} × {height})")
-    body = data[pos:]
-    if len(body) < width * height:
+    if len(data) - pos < width * height:
         raise MapError(
             f"{path}: truncated: {width} × {height} pixels need {width * height} bytes, "
-            f"found {len(body)}"
+            f"found {len(data) - pos}"
         )
-    return np.frombuffer(body, dtype=np.uint8, count=width * height).reshape(height, width)
+    pixels = np.frombuffer(data, dtype=np.uint8, count=width * height, offset=pos)
+    return pixels.reshape(height, width)
 
 
 def _number(path: Path, doc: dict[str, Any], key: str, default: float | None = None) -> float:
@@ -147,10 +147,15 @@ def read_band_pgm(yaml_path: Path | str) -> Band:
     if negate not in (0, 1):
         raise MapError(f"{yaml_path}: negate must be 0 or 1, got {negate!r}")
     pixels = _read_pgm(yaml_path.parent / doc["image"])[::-1]
+    # In place: one float64 array of the image's size and no temporaries of that size.
     known = pixels != UNKNOWN_PIXEL
-    occupancy = (pixels if negate else 255 - pixels.astype(np.int64)) / 255.0
+    occupancy = pixels.astype(np.float64)
+    if not negate:
+        np.subtract(255.0, occupancy, out=occupancy)
+    occupancy /= 255.0
+    occupancy[~known] = 0.0
     return Band(
-        occupancy=np.where(known, occupancy, 0.0),
+        occupancy=occupancy,
         known=known,
         lower_xy=np.array([float(origin[0]), float(origin[1])]),
         resolution_m=resolution,

@@ -147,3 +147,31 @@ def test_window_outside_the_map_and_window_without_prior(files: tuple[Path, Path
     assert_one_line_error(code, stderr, "--window-m needs --prior")
     code, _, stderr = run(*base, "--pdf-out", "figure.jpg")
     assert_one_line_error(code, stderr, "must name a .png file")
+
+
+def test_a_map_too_large_to_search_whole_is_one_line_within_bounded_memory(
+    tmp_path: Path,
+) -> None:
+    """An 8,000 × 8,000 map_server map (64 MB): 23 G poses would need 86 GiB of scores."""
+    import tracemalloc
+
+    n = 8000
+    image = np.full((n, n), 205, np.uint8)
+    image[::50] = 0
+    (tmp_path / "map.pgm").write_bytes(b"P5\n%d %d\n255\n" % (n, n) + image.tobytes())
+    description = "resolution: 0.05\norigin: [0, 0, 0]\nnegate: 0\n"
+    (tmp_path / "map.yaml").write_text("image: map.pgm\n" + description)
+    (tmp_path / "scan.pgm").write_bytes(b"P5\n80 80\n255\n" + image[:80, :80].tobytes())
+    (tmp_path / "scan.yaml").write_text("image: scan.pgm\n" + description)
+    del image
+    tracemalloc.start()
+    code, _, err = run(
+        "localize", "--map", str(tmp_path / "map.yaml"), "--scan", str(tmp_path / "scan.yaml")
+    )
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert_one_line_error(
+        code, err, r"would score 23,040,000,000 poses \(8000 × 8000 positions × 360 headings, "
+        r"85\.8 GiB\); at most 268,435,456 .*search a window around a prior"
+    )  # fmt: skip
+    assert peak < 0.9e9  # the file (64 MB), the band (512 + 64 MB), a mask (64 MB)
