@@ -25,59 +25,75 @@ def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
     return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
 
 
-def _on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, eps: float) -> bool:
-    return (
-        min(a[0], b[0]) - eps <= p[0] <= max(a[0], b[0]) + eps
-        and min(a[1], b[1]) - eps <= p[1] <= max(a[1], b[1]) + eps
+def _cross_many(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise 2D cross products (a − o) × (b − o) of (M, 2) arrays (or (2,) broadcast)."""
+    return np.asarray(
+        (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1])
+        - (a[..., 1] - o[..., 1]) * (b[..., 0] - o[..., 0])
     )
 
 
-def _segments_touch(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> bool:
-    scale = max(1.0, float(np.abs(np.concatenate([p1, p2, q1, q2])).max()))
+def _within_box(p: np.ndarray, a: np.ndarray, b: np.ndarray, eps: np.ndarray) -> np.ndarray:
+    lo, hi = np.minimum(a, b) - eps[:, None], np.maximum(a, b) + eps[:, None]
+    return np.asarray(np.all((lo <= p) & (p <= hi), axis=-1))
+
+
+def _touching(p1: np.ndarray, p2: np.ndarray, q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Which of the segment pairs p1p2 (one, (2,)) and q1q2 ((M, 2)) cross or touch."""
+    scale = np.maximum(
+        1.0, np.maximum(np.abs(q1).max(axis=1), np.abs(q2).max(axis=1))
+    )  # per pair, with the fixed segment's own extent
+    scale = np.maximum(scale, float(np.abs(np.concatenate([p1, p2])).max()))
     eps = 1e-12 * scale * scale
-    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
-    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
-    if ((d1 > eps and d2 < -eps) or (d1 < -eps and d2 > eps)) and (
-        (d3 > eps and d4 < -eps) or (d3 < -eps and d4 > eps)
-    ):
-        return True
-    lin = 1e-9 * scale
-    return (
-        (abs(d1) <= eps and _on_segment(p1, q1, q2, lin))
-        or (abs(d2) <= eps and _on_segment(p2, q1, q2, lin))
-        or (abs(d3) <= eps and _on_segment(q1, p1, p2, lin))
-        or (abs(d4) <= eps and _on_segment(q2, p1, p2, lin))
+    d1, d2 = _cross_many(q1, q2, p1), _cross_many(q1, q2, p2)
+    d3, d4 = _cross_many(p1, p2, q1), _cross_many(p1, p2, q2)
+    proper = (((d1 > eps) & (d2 < -eps)) | ((d1 < -eps) & (d2 > eps))) & (
+        ((d3 > eps) & (d4 < -eps)) | ((d3 < -eps) & (d4 > eps))
     )
+    lin = 1e-9 * scale
+    p1s, p2s = np.broadcast_to(p1, q1.shape), np.broadcast_to(p2, q1.shape)
+    return np.asarray(
+        proper
+        | ((np.abs(d1) <= eps) & _within_box(p1s, q1, q2, lin))
+        | ((np.abs(d2) <= eps) & _within_box(p2s, q1, q2, lin))
+        | ((np.abs(d3) <= eps) & _within_box(q1, p1s, p2s, lin))
+        | ((np.abs(d4) <= eps) & _within_box(q2, p1s, p2s, lin))
+    )
+
+
+def _folds_back(shared: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """Adjacent edges share one vertex; they overlap only if they fold back onto each other."""
+    u, v = a - shared, b - shared
+    collinear = abs(u[0] * v[1] - u[1] * v[0]) <= 1e-12 * max(1.0, float(np.abs(u).max())) ** 2
+    return bool(collinear and float(u @ v) > 0)
 
 
 def find_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
     """The first pair of edges (i, j) that cross or touch, or None for a simple polygon.
 
     Edge i runs from vertex i to vertex i + 1 (mod N). Adjacent edges may share their common
-    vertex only; a repeated vertex or a zero-length edge makes the polygon non-simple.
+    vertex only; a repeated vertex or a zero-length edge makes the polygon non-simple. Each
+    edge is tested against all later ones at once (2,000 vertices: well under a second).
     """
+    polygon = np.asarray(polygon, dtype=float)
     n = len(polygon)
+    after = np.roll(polygon, -1, axis=0)
+    same = np.all(np.abs(after - polygon) <= 1e-12, axis=1)
+    if same.any():
+        k = int(np.argmax(same))
+        return (k, k)
     for i in range(n):
-        if np.allclose(polygon[i], polygon[(i + 1) % n], rtol=0.0, atol=1e-12):
-            return (i, i)
-    for i in range(n):
-        a1, a2 = polygon[i], polygon[(i + 1) % n]
-        for j in range(i + 1, n):
-            b1, b2 = polygon[j], polygon[(j + 1) % n]
-            if j == i + 1 or (i == 0 and j == n - 1):
-                # Adjacent edges share one vertex; they overlap only if they fold back.
-                shared = a2 if j == i + 1 else a1
-                other_a = a1 if j == i + 1 else a2
-                other_b = b2 if j == i + 1 else b1
-                u, v = other_a - shared, other_b - shared
-                collinear = (
-                    abs(u[0] * v[1] - u[1] * v[0]) <= 1e-12 * max(1.0, float(np.abs(u).max())) ** 2
-                )
-                if collinear and float(u @ v) > 0:
-                    return (i, j)
-                continue
-            if _segments_touch(a1, a2, b1, b2):
-                return (i, j)
+        a1, a2 = polygon[i], after[i]
+        if i + 1 < n and _folds_back(a2, a1, after[i + 1]):
+            return (i, i + 1)
+        last = n - 1 if i > 0 else n - 2  # edge n − 1 is adjacent to edge 0
+        if i + 2 <= last:
+            later = slice(i + 2, last + 1)
+            hits = np.flatnonzero(_touching(a1, a2, polygon[later], after[later]))
+            if len(hits):
+                return (i, i + 2 + int(hits[0]))
+        if i == 0 and n > 2 and _folds_back(a1, a2, polygon[n - 1]):
+            return (0, n - 1)
     return None
 
 

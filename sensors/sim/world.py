@@ -45,6 +45,8 @@ Name = Annotated[str, Field(min_length=1, max_length=80, pattern=r"^[A-Za-z0-9_.
 
 #: Geometric tolerance of the checks (metres).
 TOLERANCE_M = 1e-9
+#: A room's footprint: at most this many vertices (its simplicity check is quadratic).
+MAX_FOOTPRINT_VERTICES = 4096
 
 
 class _Model(BaseModel):
@@ -81,7 +83,7 @@ class Room(_Model):
     """A floor polygon (counter-clockwise, metres) extruded up to ``ceiling_m``."""
 
     name: Name
-    footprint: list[Point2] = Field(min_length=3)
+    footprint: list[Point2] = Field(min_length=3, max_length=MAX_FOOTPRINT_VERTICES)
     ceiling_m: float = Field(gt=0, le=100)
     openings: list[Opening] = []
 

@@ -81,3 +81,59 @@ def test_triangulation_of_a_polygon_with_collinear_vertices() -> None:
 def test_triangulation_rejects_too_few_vertices() -> None:
     with pytest.raises(ValueError, match="at least 3 vertices"):
         triangulate(SQUARE[:2])
+
+
+def reference_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
+    """Every pair of edges tested one at a time, straight from the definition."""
+    n = len(polygon)
+    edges = [(polygon[i], polygon[(i + 1) % n]) for i in range(n)]
+    for i in range(n):
+        if np.allclose(*edges[i], rtol=0.0, atol=1e-12):
+            return (i, i)
+
+    def cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+        return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+    def on(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+        return bool(np.all((np.minimum(a, b) - 1e-9 <= p) & (p <= np.maximum(a, b) + 1e-9)))
+
+    for i in range(n):
+        for j in range(i + 1, n):
+            (p1, p2), (q1, q2) = edges[i], edges[j]
+            if j == i + 1 or (i == 0 and j == n - 1):
+                shared, u_end, v_end = (p2, p1, q2) if j == i + 1 else (p1, p2, q1)
+                u, v = u_end - shared, v_end - shared
+                if abs(u[0] * v[1] - u[1] * v[0]) <= 1e-12 and float(u @ v) > 0:
+                    return (i, j)
+                continue
+            d = [cross(q1, q2, p1), cross(q1, q2, p2), cross(p1, p2, q1), cross(p1, p2, q2)]
+            if d[0] * d[1] < 0 and d[2] * d[3] < 0:
+                return (i, j)
+            ends = [(p1, q1, q2), (p2, q1, q2), (q1, p1, p2), (q2, p1, p2)]
+            if any(abs(dk) <= 1e-12 and on(*e) for dk, e in zip(d, ends, strict=True)):
+                return (i, j)
+    return None
+
+
+def test_self_intersection_agrees_with_the_definition_on_random_polygons() -> None:
+    rng = np.random.default_rng(0)
+    for trial in range(600):
+        n = int(rng.integers(3, 12))
+        if trial % 2:
+            polygon = rng.integers(0, 5, size=(n, 2)).astype(float)  # many touching cases
+        else:
+            polygon = rng.uniform(-1.0, 1.0, size=(n, 2))
+        assert find_self_intersection(polygon) == reference_self_intersection(polygon), polygon
+
+
+def test_self_intersection_of_thousands_of_vertices_is_quick() -> None:
+    import time
+
+    angle = np.linspace(0.0, 2.0 * np.pi, 2000, endpoint=False)
+    circle = 10.0 * np.column_stack([np.cos(angle), np.sin(angle)])
+    started = time.perf_counter()
+    assert find_self_intersection(circle) is None
+    assert time.perf_counter() - started < 4.0  # the pairwise loop took 18 s
+    circle[1000] = [0.0, 0.0]  # a spike to the centre crosses nothing, ...
+    circle[500] = [0.0, -12.0]  # ... a vertex pulled across the circle does
+    assert find_self_intersection(circle) is not None

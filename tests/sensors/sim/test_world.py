@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 from typing import Any
 
@@ -199,6 +200,11 @@ def edited(**changes: Any) -> dict[str, Any]:
             r"boxes\[0\]\.center\[1\]: Input should be a valid number",
         ),
         (edited(rooms=[]), r"rooms: List should have at least 1 item"),
+        (
+            edited(rooms=[{"name": "r", "ceiling_m": 2.5, "footprint": [
+                [10 * math.cos(a), 10 * math.sin(a)] for a in np.linspace(0, 6.28, 5000)]}]),
+            r"rooms\[0\]\.footprint: List should have at most 4096 items",
+        ),
         ({"rooms": box_room_document()["rooms"]}, r"name: required key is missing"),
     ],
 )  # fmt: skip
