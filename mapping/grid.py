@@ -29,7 +29,11 @@ from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.logodds import logodds, probability
 from mapping.storage import BlockStorage, discard_scan_cube, scan_cube
 
-__all__ = ["GridParams", "OccupancyGrid"]
+__all__ = ["MIN_RESOLUTION_M", "GridParams", "OccupancyGrid"]
+
+#: The finest cell a grid may have: finer cells multiply memory by the cube of the ratio (a
+#: 0.5 mm grid of one room needs gigabytes) and are far below the LMS 200's range noise.
+MIN_RESOLUTION_M = 0.005
 
 #: Cell coordinates beyond this many cells from the origin cannot be addressed (block keys).
 _INITIAL_BLOCKS = 256
@@ -64,6 +68,10 @@ class GridParams:
 
     def __post_init__(self) -> None:
         _finite_positive("resolution_m", self.resolution_m)
+        if self.resolution_m < MIN_RESOLUTION_M:
+            raise MapError(
+                f"resolution_m must be at least {MIN_RESOLUTION_M} m, got {self.resolution_m!r}"
+            )
         for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max", "occupied_threshold"):
             _open_probability(name, getattr(self, name))
         if not self.prob_miss < 0.5 < self.prob_hit:

@@ -143,6 +143,7 @@ def test_infinite_block_values_are_rejected() -> None:
     [
         ({"resolution_m": 0.0}, "resolution_m must be a positive number, got 0.0"),
         ({"resolution_m": float("nan")}, "resolution_m must be a positive number"),
+        ({"resolution_m": 0.0005}, r"resolution_m must be at least 0.005 m, got 0.0005"),
         ({"prob_hit": 1.0}, r"prob_hit must lie in \(0, 1\), got 1.0"),
         ({"prob_hit": 0.4}, r"need prob_miss < 0.5 < prob_hit"),
         ({"prob_miss": 0.6}, r"need prob_miss < 0.5 < prob_hit"),
