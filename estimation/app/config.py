@@ -19,7 +19,6 @@ from typing import Any, Literal, Self
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mapping.grid import MIN_RESOLUTION_M
 from sensors.yamlio import merge_mappings, read_yaml_mapping, validate_mapping
 
 __all__ = [
@@ -195,7 +194,7 @@ class GridConfig(_Section):
 
     # At least 5 mm: finer cells than the LMS 200's range noise only multiply memory (a 0.5 mm
     # grid of one building is terabytes).
-    resolution_m: float = Field(0.1, ge=MIN_RESOLUTION_M, le=10)
+    resolution_m: float = Field(0.1, ge=0.005, le=10)  # mapping.grid.MIN_RESOLUTION_M
     prob_hit: float = Field(0.7, gt=0.5, lt=1)
     prob_miss: float = Field(0.4, gt=0, lt=0.5)
     clamp_min: float = Field(0.1192, gt=0, lt=1)

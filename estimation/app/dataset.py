@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +29,10 @@ from sensors.errors import SensorError
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureReader
+from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
 from sensors.lms200.protocol.scan import Scan, decode_scan
 from sensors.lms200.protocol.stream import StreamParser, Telegram
-from sensors.lms200.protocol.telegram import ProtocolError
+from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
 from sensors.scan3d.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
 from sensors.trajio import read_tum
@@ -209,26 +210,52 @@ class RobotStream:
     checksum_failures: int = 0
     bytes_skipped: int = 0
     truncated_bytes: int = 0
+    implausible: dict[str, int] = field(default_factory=dict)  # scans rejected, by reason
+
+    @property
+    def implausible_scans(self) -> int:
+        return sum(self.implausible.values())
 
 
-def decode_robot(capture: Path, measuring_mode: int) -> RobotStream:
-    """Every measured-value telegram of a capture, decoded, with its measurement time."""
+def decode_robot(
+    capture: Path, measuring_mode: int, limits: ScanLimits | None = None
+) -> RobotStream:
+    """Every measured-value telegram of a capture, decoded, with its measurement time.
+
+    With ``limits`` (the configured variant, unit and baud rate), scans that passed the checksum
+    but cannot come from that sensor are dropped and counted by reason; the baud rate in the
+    capture's header, when it has one, sets the telegram interval.
+    """
     reader = CaptureReader(capture)
     parser = StreamParser()
+    check: ScanCheck | None = None
+    if limits is not None:
+        baud = (reader.header or {}).get("baud_rate")
+        check = ScanCheck(replace(limits, baud_rate=baud) if baud in BAUD_RATES else limits)
     scans: list[Scan] = []
-    undecodable = 0
+    decoded = undecodable = 0
     stamp: float | None = None
     for stamp, chunk in reader.chunks():
         for event in parser.feed(chunk, stamp):
             if isinstance(event, Telegram) and event.code == 0xB0:
                 try:
-                    scans.append(decode_scan(event, measuring_mode))
+                    scan = decode_scan(event, measuring_mode)
                 except ProtocolError:
                     undecodable += 1
+                    continue
+                decoded += 1
+                if scan.stamp_s is not None and (check is None or check.check(scan) is None):
+                    scans.append(scan)
     parser.close(stamp)
-    if not scans:
+    if not decoded:
         raise SensorError(f"{capture}: no measured values in the capture")
-    scans = [s for s in scans if s.stamp_s is not None]
+    implausible = dict(check.rejected) if check is not None else {}
+    if not scans and implausible:
+        raise SensorError(
+            f"{capture}: all {decoded} scans are implausible for the configured scanner "
+            f"({', '.join(f'{n} {why}' for why, n in sorted(implausible.items()))}): check "
+            "scanner.field_of_view_deg, angular_resolution_deg, unit and serial.baud_rate"
+        )
     return RobotStream(
         scans=scans,
         times_s=scan_times(scans),
@@ -237,6 +264,7 @@ def decode_robot(capture: Path, measuring_mode: int) -> RobotStream:
         checksum_failures=parser.stats.checksum_failures,
         bytes_skipped=parser.stats.bytes_skipped,
         truncated_bytes=reader.truncated_bytes,
+        implausible=implausible,
     )
 
 

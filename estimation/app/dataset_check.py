@@ -23,6 +23,7 @@ from estimation.app.dataset import (
     read_robots,
     sweep_in,
 )
+from estimation.app.rig import scan_limits
 from estimation.errors import EstimationError
 from mapping.errors import MapError
 from sensors.errors import SensorError
@@ -298,7 +299,7 @@ def _check_sweeps(
         if progress is not None:
             progress(f"decoding {cap}")
         try:
-            stream = decode_robot(path / cap, config.scanner.measuring_mode)
+            stream = decode_robot(path / cap, config.scanner.measuring_mode, scan_limits(config))
         except _KNOWN as exc:
             _failed(check, cap, exc, str(path / cap))
             continue
@@ -308,6 +309,7 @@ def _check_sweeps(
             "undecodable telegrams": stream.undecodable,
             "bytes skipped": stream.bytes_skipped,
             "bytes of a truncated last record": stream.truncated_bytes,
+            "implausible scans": stream.implausible_scans,
         }
         found = [f"{n:,} {what}" for what, n in damage.items() if n]
         if found:

@@ -34,7 +34,7 @@ from estimation.app.dataset import (
     stations,
 )
 from estimation.app.results import BatchOutput, write_results
-from estimation.app.rig import T_robot_scanner, graph_settings, station_params
+from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
@@ -107,11 +107,13 @@ def prepare(
     clock = time.perf_counter()
     dataset = load_dataset(dataset_dir, overrides)
     streams: dict[str, RobotStream] = {}
+    scanner = dataset.config.scanner
+    limits = scan_limits(dataset.config)
     for robot in dataset.robots:
         if progress is not None:
             progress(f"decoding robot {robot}")
         capture = dataset.path / "robots" / robot / "lms.cap"
-        streams[robot] = decode_robot(capture, dataset.config.scanner.measuring_mode)
+        streams[robot] = decode_robot(capture, scanner.measuring_mode, limits)
     decode = time.perf_counter() - clock
     clock = time.perf_counter()
     stream = build_events(dataset, streams, progress)
@@ -210,6 +212,8 @@ def _finish(
                 "checksum_failures": prepared.streams[r].checksum_failures,
                 "bytes_skipped": prepared.streams[r].bytes_skipped,
                 "truncated_bytes": prepared.streams[r].truncated_bytes,
+                "implausible_scans": prepared.streams[r].implausible_scans,
+                "implausible": prepared.streams[r].implausible,
                 "poses": len(poses[r]),
             }
             for r in dataset.robots

@@ -132,13 +132,14 @@ def report_markdown(output: BatchOutput, metrics: dict[str, Any] | None = None) 
         "",
         f"Dataset `{r['dataset']}`, coopmap {r['coopmap']}.",
         "",
-        "| robot | poses | telegrams | checksum failures | undecodable | bytes skipped |",
-        "|---|---|---|---|---|---|",
+        "| robot | poses | telegrams | checksum failures | undecodable | implausible scans "
+        "| bytes skipped |",
+        "|---|---|---|---|---|---|---|",
     ]
     for robot, s in r["robots"].items():
         lines.append(
             f"| {robot} | {s['poses']} | {s['telegrams']} | {s['checksum_failures']} | "
-            f"{s['undecodable']} | {s['bytes_skipped']} |"
+            f"{s['undecodable']} | {s.get('implausible_scans', 0)} | {s['bytes_skipped']} |"
         )
     lines += [
         "",

@@ -21,6 +21,7 @@ from estimation.search.stations import StationParams
 from mapping.grid import GridParams
 from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
 from sensors.lms200.driver import Lms200
+from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.scan3d.mirror import MirrorGeometry
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import RobotBody, SimulatedScanner, world_with_robots
@@ -229,3 +230,12 @@ def driver_from_config(config: Config, port: str | None = None, **overrides: Any
     }
     options.update(overrides)
     return Lms200(port or s.port, **options)
+
+
+def scan_limits(config: Config) -> ScanLimits:
+    """What the configured LMS 200 can send (variant, unit, baud rate): the plausibility rules."""
+    scanner = config.scanner
+    return ScanLimits.for_variant(
+        scanner.field_of_view_deg, scanner.angular_resolution_deg,
+        unit_mm=scanner.unit == "mm", baud_rate=config.serial.baud_rate,
+    )  # fmt: skip

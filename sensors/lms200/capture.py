@@ -24,15 +24,16 @@ import os
 import struct
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
 
 from sensors.errors import SensorError
+from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
 from sensors.lms200.protocol.replies import decode_reply
 from sensors.lms200.protocol.scan import decode_scan
-from sensors.lms200.protocol.stream import Event, Handshake, Rejected, StreamParser
-from sensors.lms200.protocol.telegram import ProtocolError
+from sensors.lms200.protocol.stream import Event, Handshake, Rejected, StreamParser, Telegram
+from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
 from sensors.yamlio import regular_file
 
 __all__ = [
@@ -244,6 +245,8 @@ class DecodeSummary:
     naks: int = 0
     checksum_failures: int = 0
     undecodable: int = 0
+    implausible: int = 0  # checksum-valid scans the plausibility rules rejected
+    implausible_reasons: dict[str, int] = field(default_factory=dict)
     bytes_skipped: int = 0
     truncated_bytes: int = 0
     kinds: dict[str, int] = field(default_factory=dict)
@@ -308,23 +311,41 @@ def describe_event(event: Event, measuring_mode: int = 1) -> dict[str, Any]:
 
 
 def decode_stream(
-    reader: CaptureReader, measuring_mode: int = 1, direction: str = "any"
+    reader: CaptureReader,
+    measuring_mode: int = 1,
+    direction: str = "any",
+    limits: ScanLimits | None = None,
 ) -> tuple[Iterator[dict[str, Any]], DecodeSummary]:
     """Records of every telegram, ACK/NAK and checksum failure in a capture or dump.
 
+    With ``limits``, a scan that breaks a plausibility rule becomes an ``implausible`` record
+    with its ``reason`` (the capture header's baud rate, when it has one, overrides theirs).
     The summary fills in as the iterator is consumed.
     """
     summary = DecodeSummary()
     parser = StreamParser(direction, report_failures=True)
+    baud = (reader.header or {}).get("baud_rate")
+    if limits is not None and baud in BAUD_RATES:
+        limits = replace(limits, baud_rate=baud)
+    check = ScanCheck(limits) if limits is not None else None
+
+    def judged(event: Event) -> dict[str, Any]:
+        record = describe_event(event, measuring_mode)
+        if check is not None and record["kind"] == "scan" and isinstance(event, Telegram):
+            reason = check.check(decode_scan(event, measuring_mode))
+            if reason is not None:
+                record.update(kind="implausible", reason=reason.value)
+        return record
 
     def records() -> Iterator[dict[str, Any]]:
         stamp: float | None = None
         for stamp, chunk in reader.chunks():
             summary.bytes += len(chunk)
             for event in parser.feed(chunk, stamp):
-                yield count(describe_event(event, measuring_mode))
+                yield count(judged(event))
         for event in parser.close(stamp):
-            yield count(describe_event(event, measuring_mode))
+            yield count(judged(event))
+        summary.implausible_reasons = dict(check.rejected) if check is not None else {}
         summary.checksum_failures = parser.stats.checksum_failures
         summary.bytes_skipped = parser.stats.bytes_skipped
         summary.truncated_bytes = reader.truncated_bytes
@@ -340,6 +361,7 @@ def decode_stream(
         summary.acks += kind == "ack"
         summary.naks += kind == "nak"
         summary.undecodable += kind == "invalid"
+        summary.implausible += kind == "implausible"
         return record
 
     return records(), summary

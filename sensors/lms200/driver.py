@@ -33,6 +33,7 @@ from sensors.lms200.protocol.commands import (
     cmd_variant,
     cmd_write_config,
 )
+from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
 from sensors.lms200.protocol.replies import (
     ConfigReply,
     ModeReply,
@@ -115,6 +116,7 @@ class Lms200:
         self.streaming = False
         self._serial: serial.SerialBase | None = None
         self._parser = StreamParser("from_sensor")
+        self.plausibility: ScanCheck | None = None  # of the stream: its rejections by reason
 
     # ---------------------------------------------------------------------------------------
     # Port
@@ -331,6 +333,10 @@ class Lms200:
             config_written=written,
         )
         self._mode(cmd_continuous(self.address), "starting continuous output")
+        self.plausibility = ScanCheck(ScanLimits.for_variant(
+            self.angle_deg, self.resolution_deg, unit_mm=wanted.unit_mm,
+            baud_rate=self.baud_rate, realtime_indices=wanted.realtime_indices,
+        ))  # fmt: skip
         self.streaming = True
         return self.info
 
@@ -383,6 +389,8 @@ class Lms200:
                     except ProtocolError:
                         continue  # counted by the caller via the parser; never raised
                     got = True
+                    if self.plausibility is not None and self.plausibility.check(scan) is not None:
+                        continue  # counted in self.plausibility.rejected
                     delivered += 1
                     yield scan
                     if limit is not None and delivered >= limit:

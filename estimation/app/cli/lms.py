@@ -32,10 +32,13 @@ def lms_decode(
     """Decode a raw LMS 2xx byte stream: one line per telegram, then a summary of counts."""
     import json
 
+    from estimation.app.rig import scan_limits
     from sensors.lms200.capture import CaptureReader, decode_stream
 
     cfg = option_config(config)
-    records, summary = decode_stream(CaptureReader(file), cfg.scanner.measuring_mode, direction)
+    records, summary = decode_stream(
+        CaptureReader(file), cfg.scanner.measuring_mode, direction, scan_limits(cfg)
+    )
     out = sys.stdout
     for record in records:
         if json_out:
@@ -43,6 +46,7 @@ def lms_decode(
         else:
             out.write(_telegram_line(record) + "\n")
     counts = summary.as_dict()
+    reasons = ", ".join(f"{why} {n}" for why, n in sorted(counts["implausible_reasons"].items()))
     if json_out:
         out.write(json.dumps({"kind": "summary", **counts}) + "\n")
     else:
@@ -51,7 +55,9 @@ def lms_decode(
             f"({counts['scans']:,} scans, {counts['replies']:,} replies, "
             f"{counts['commands']:,} commands), {counts['acks']} ACK, {counts['naks']} NAK, "
             f"{counts['checksum_failures']} checksum failures, {counts['undecodable']} "
-            f"undecodable, {counts['bytes_skipped']:,} bytes skipped"
+            f"undecodable, {counts['implausible']} implausible"
+            + (f" ({reasons})" if reasons else "")
+            + f", {counts['bytes_skipped']:,} bytes skipped"
             + (
                 f", {counts['truncated_bytes']} bytes truncated"
                 if counts["truncated_bytes"]
@@ -190,7 +196,12 @@ def _telegram_line(record: dict[str, Any]) -> str:
         skip = {"offset", "addr", "code", "crc_ok", "kind", "stamp_s", "status", "name"}
         details = {k: v for k, v in record.items() if k not in skip}
         return f"{head}  {record['name']} {details}"
-    if kind in ("command", "invalid", "bad_checksum"):
-        extra = record.get("error") or record.get("data") or f"length {record.get('length')}"
+    if kind in ("command", "invalid", "bad_checksum", "implausible"):
+        extra = (
+            record.get("error")
+            or record.get("reason")
+            or record.get("data")
+            or f"length {record.get('length')}"
+        )
         return f"{head}  {extra}"
     return head

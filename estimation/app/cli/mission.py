@@ -125,25 +125,31 @@ def batch(
         output = run_batch(dataset, out, overrides=overrides, progress=status.update)
     r = output.report
     poses = ", ".join(f"{name} {s['poses']}" for name, s in r["robots"].items())
+    implausible = ", ".join(f"{name} {s['implausible_scans']}" for name, s in r["robots"].items())
     make_console().print(
         f"coopmap batch: {r['sweeps']} sweeps, {r['observations']} mutual observations "
         f"({len(r['gate_rejections'])} gated out, {len(r['outlier_factors'])} outliers), "
-        f"poses: {poses}; {r.get('occupied_voxels', 0):,} occupied voxels; "
+        f"poses: {poses}; implausible scans: {implausible}; "
+        f"{r.get('occupied_voxels', 0):,} occupied voxels; "
         f"{r['timings_s']['total']:.1f} s"
     )
-    warn_unplaced(r)
     make_console().print(f"  wrote {output.out_dir}/")
+    fail_unplaced(r, output.out_dir)
 
 
-def warn_unplaced(report: dict[str, Any]) -> None:
-    """Say so on stderr when a robot ended with no pose: nothing tied it to the map."""
+def fail_unplaced(report: dict[str, Any], out_dir: Path) -> None:
+    """Exit 2 with one line when a robot ended with no pose (nothing tied it to the map); the
+    result of the others stays written."""
     lost = [name for name, s in report["robots"].items() if not s["poses"]]
-    for name in lost:
+    if lost:
+        who = f"robot {lost[0]} has" if len(lost) == 1 else f"robots {', '.join(lost)} have"
         typer.echo(
-            f"coopmap: warning: robot {name} has no pose in the result: no mutual observation "
-            "tied it to the map (see unseen_pairs and missing_sweeps in report.json)",
+            f"coopmap: error: {who} no pose in the result: no mutual observation tied "
+            f"{'it' if len(lost) == 1 else 'them'} to the map (see unseen_pairs and "
+            f"missing_sweeps in {out_dir / 'report.json'})",
             err=True,
         )
+        raise typer.Exit(code=2)
 
 
 @cli_errors
@@ -171,8 +177,8 @@ def isam(
         + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
         f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
     )
-    warn_unplaced(output.report)
     make_console().print(f"  wrote {output.out_dir}/")
+    fail_unplaced(output.report, output.out_dir)
 
 
 @cli_errors

@@ -7,6 +7,8 @@
 * :mod:`~sensors.lms200.protocol.stream` — :class:`StreamParser` and the events it yields;
 * :mod:`~sensors.lms200.protocol.scan` — measured values (``B0``): :class:`Scan`,
   :func:`decode_scan`, :func:`encode_scan`;
+* :mod:`~sensors.lms200.protocol.plausibility` — :class:`ScanCheck`: checksum-valid scans that
+  the configured sensor cannot send, rejected by reason;
 * :mod:`~sensors.lms200.protocol.replies` — the other replies: :func:`decode_reply`, the
   ``encode_*_reply`` functions.
 

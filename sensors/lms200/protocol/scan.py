@@ -26,6 +26,7 @@ from sensors.lms200.protocol.telegram import (
 )
 
 __all__ = [
+    "VARIANT_BY_COUNT",
     "Scan",
     "SpecialCode",
     "decode_scan",
@@ -56,7 +57,7 @@ _SPECIAL_BY_GAP: Final = {
 }  # fmt: skip
 _RAW_FOR_CODE: Final = {code: gap for gap, code in _SPECIAL_BY_GAP.items()}
 #: Complete-scan sizes → (field of view °, resolution °).
-_VARIANT_BY_COUNT: Final = {101: (100, 1.0), 201: (100, 0.5), 401: (100, 0.25), 181: (180, 1.0),
+VARIANT_BY_COUNT: Final = {101: (100, 1.0), 201: (100, 0.5), 401: (100, 0.25), 181: (180, 1.0),
                             361: (180, 0.5)}  # fmt: skip
 
 
@@ -80,6 +81,7 @@ class Scan:
     stamp_s: float | None = None
     measuring_mode: int = 1
     raw: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16), repr=False)
+    count_word: int | None = None  # as received (§6.3); None for a scan not decoded from bytes
 
     @property
     def valid(self) -> np.ndarray:
@@ -99,9 +101,9 @@ class Scan:
 def _bearings(count: int, partial: bool, offset_deg: float) -> np.ndarray:
     if partial:
         return np.radians(-90.0 + offset_deg + np.arange(count, dtype=float))
-    if count not in _VARIANT_BY_COUNT:
+    if count not in VARIANT_BY_COUNT:
         raise ProtocolError(f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}")
-    fov, res = _VARIANT_BY_COUNT[count]
+    fov, res = VARIANT_BY_COUNT[count]
     return np.radians(-fov / 2 + res * np.arange(count, dtype=float))
 
 
@@ -162,6 +164,7 @@ def decode_scan(telegram: Telegram, measuring_mode: int = 1) -> Scan:
         stamp_s=telegram.stamp_s,
         measuring_mode=measuring_mode,
         raw=raw,
+        count_word=count_word,
     )
 
 
@@ -184,7 +187,7 @@ def encode_scan(
     """
     ranges_m = np.asarray(ranges_m, dtype=float)
     count = len(ranges_m)
-    if count not in _VARIANT_BY_COUNT:
+    if count not in VARIANT_BY_COUNT:
         raise ProtocolError(f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}")
     mask = DISTANCE_MASK[measuring_mode]
     unit_m = 0.001 if unit_mm else 0.01

@@ -166,3 +166,11 @@ def test_station_searches_use_station_beta(tmp_path: Path) -> None:
     assert params.search.beta == pytest.approx(0.05)
     assert params.station_search.beta == pytest.approx(0.2)
     assert params.station_search.free_weight == params.search.free_weight
+
+
+def test_the_grid_resolution_bound_is_the_grids_own() -> None:
+    """The schema repeats the bound (importing mapping.grid would load numba for --help)."""
+    from mapping.grid import MIN_RESOLUTION_M
+
+    field = Config.model_fields["grid"].annotation.model_fields["resolution_m"]  # type: ignore[union-attr]
+    assert [m.ge for m in field.metadata if hasattr(m, "ge")] == [MIN_RESOLUTION_M]

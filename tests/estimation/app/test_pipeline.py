@@ -40,6 +40,7 @@ def test_batch_writes_the_result_directory(result: Path) -> None:
     assert report["observations"] >= 4
     assert report["missing_sweeps"] == []
     assert report["robots"]["a"]["checksum_failures"] == 0
+    assert [r["implausible_scans"] for r in report["robots"].values()] == [0, 0]  # clean captures
     stamps, poses = read_tum(result / "poses" / "a.tum")
     assert stamps[0] == 0.0
     np.testing.assert_allclose(poses[0], [2.0, 3.5, np.radians(20)], atol=1e-3)  # the gauge
@@ -299,3 +300,25 @@ def test_office_loop_closes_with_the_search_factors(tmp_path: Path) -> None:
         assert ate_without > 3 * ate, (ate, ate_without)  # ≈ 2.1 m without
     assert with_["map"]["precision"] > 0.9
     assert with_["map"]["recall"] > 0.9
+
+
+def test_a_mission_without_mutual_observations_fails_in_one_line(
+    dataset: Path, tmp_path: Path
+) -> None:
+    """Dwells without reference/mapper: robot b is tied to nothing; batch says so, exit 2."""
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result*"))
+    events = [json.loads(line) for line in (copy / "events.jsonl").read_text().splitlines()]
+    for event in events:
+        event.pop("reference", None)
+        event.pop("mapper", None)
+    (copy / "events.jsonl").write_text("".join(json.dumps(e) + "\n" for e in events))
+    result = CliRunner().invoke(app, ["batch", str(copy)])
+    assert result.exit_code == 2
+    assert result.stderr.strip().splitlines() == [
+        "coopmap: error: robot b has no pose in the result: no mutual observation tied it to "
+        f"the map (see unseen_pairs and missing_sweeps in {copy / 'result' / 'report.json'})"
+    ]
+    report = json.loads((copy / "result" / "report.json").read_text())
+    assert report["observations"] == 0
+    assert report["robots"]["a"]["poses"] == 3  # the gauge's own result is kept

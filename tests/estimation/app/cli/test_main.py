@@ -191,13 +191,25 @@ def test_console_script_errors_without_traceback(tmp_path: Path) -> None:
     assert proc.stdout == ""
 
 
-def test_a_robot_left_without_poses_is_a_warning(capsys: pytest.CaptureFixture[str]) -> None:
-    from estimation.app.cli.mission import warn_unplaced
+def test_a_robot_left_without_poses_fails_the_run_in_one_line(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    import typer
 
-    warn_unplaced({"robots": {"a": {"poses": 3}, "c": {"poses": 0}, "d": {"poses": 0}}})
+    from estimation.app.cli.mission import fail_unplaced
+
+    with pytest.raises(typer.Exit) as info:
+        fail_unplaced(
+            {"robots": {"a": {"poses": 3}, "c": {"poses": 0}, "d": {"poses": 0}}}, tmp_path
+        )
+    assert info.value.exit_code == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 2
-    assert err[0].startswith("coopmap: warning: robot c has no pose in the result")
-    assert "robot d" in err[1]
-    warn_unplaced({"robots": {"a": {"poses": 3}}})
+    assert err == [
+        "coopmap: error: robots c, d have no pose in the result: no mutual observation tied them "
+        f"to the map (see unseen_pairs and missing_sweeps in {tmp_path / 'report.json'})"
+    ]
+    with pytest.raises(typer.Exit):
+        fail_unplaced({"robots": {"a": {"poses": 3}, "c": {"poses": 0}}}, tmp_path)
+    assert capsys.readouterr().err.startswith("coopmap: error: robot c has no pose")
+    fail_unplaced({"robots": {"a": {"poses": 3}}}, tmp_path)
     assert capsys.readouterr().err == ""
