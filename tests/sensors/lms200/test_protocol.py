@@ -515,3 +515,14 @@ def test_parser_never_raises_and_stays_bounded(data: bytes, chunk: int) -> None:
     stats = parser.stats
     assert stats.bytes_in == len(data)
     assert stats.bytes_skipped + stats.acks + stats.naks <= len(data)
+
+
+def test_scans_of_one_variant_share_one_read_only_bearing_array() -> None:
+    (one,) = StreamParser().feed(encode_scan(np.full(101, 2.0)))
+    (two,) = StreamParser().feed(encode_scan(np.full(101, 3.0)))
+    assert isinstance(one, Telegram)
+    assert isinstance(two, Telegram)
+    first, second = decode_scan(one), decode_scan(two)
+    assert first.bearing_rad is second.bearing_rad
+    assert not first.bearing_rad.flags.writeable
+    np.testing.assert_allclose(np.degrees(first.bearing_rad[[0, 50, 100]]), [-50.0, 0.0, 50.0])
