@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "OutputError", "SensorError", "TrajectoryError", "WorldError"]
+__all__ = [
+    "DeviceError",
+    "OutputError",
+    "RecordingError",
+    "SensorError",
+    "TrajectoryError",
+    "WorldError",
+]
 
 
 class SensorError(Exception):
@@ -24,3 +31,8 @@ class TrajectoryError(SensorError, ValueError):
 
 class OutputError(SensorError):
     """An output path coopmap must not write to (a user's folder, the input itself, a file)."""
+
+
+class RecordingError(SensorError):
+    """A recording cannot be made or read (clock server, odometry source, recording folder); the
+    message names the endpoint or file."""

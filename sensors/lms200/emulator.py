@@ -11,6 +11,11 @@ Measured values come from ``scan_source(t_s, count) -> (ranges_m, flags)``, call
 emulator's time since start and the number of values of the current variant; ranges that are
 NaN or out of the mode's field go out as "no return".
 
+Replay: ``clock`` (default ``time.monotonic``) is the emulator's time base for its pacing, delays
+and scan cadence, so a simulated clock running faster than real time speeds the whole device up;
+``stream(after_s) -> (start_s, telegram) | None`` replaces the scan source in continuous mode
+with given telegrams, each sent as it is, never before its ``start_s`` on that clock.
+
 Faults for tests: :attr:`Lms200Emulator.nak_next` (NAK the next n telegrams), ``mute()`` (stops
 talking and listening), ``disconnect()`` (the device disappears: the pty closes).
 """
@@ -18,6 +23,7 @@ talking and listening), ``disconnect()`` (the device disappears: the pty closes)
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
 import termios
@@ -52,9 +58,11 @@ from sensors.lms200.protocol.telegram import (
     reply_frame,
 )
 
-__all__ = ["EmulatorState", "Lms200Emulator", "ScanSource"]
+__all__ = ["EmulatorState", "Lms200Emulator", "ScanSource", "TelegramStream"]
 
 ScanSource = Callable[[float, int], tuple[np.ndarray, np.ndarray]]
+#: The first telegram that starts after a time (the emulator's clock): (start_s, bytes), or None.
+TelegramStream = Callable[[float], tuple[float, bytes] | None]
 
 _TERMIOS_BAUD = {
     termios.B9600: 9600, termios.B19200: 19200, termios.B38400: 38400,
@@ -96,6 +104,8 @@ class Lms200Emulator:
         boot_s: float = 0.02,
         reply_delay_s: float = 0.005,
         pace: bool = True,
+        clock: Callable[[], float] = time.monotonic,
+        stream: TelegramStream | None = None,
     ) -> None:
         if power_on_baud not in BAUD_RATES:
             raise DeviceError(f"power-on baud must be one of {BAUD_RATES}, got {power_on_baud}")
@@ -106,6 +116,9 @@ class Lms200Emulator:
         self.boot_s = boot_s
         self.reply_delay_s = reply_delay_s
         self.pace = pace
+        self._clock = clock
+        self.stream = stream
+        self._streamed: tuple[float, bytes] | None = None
         self.state = EmulatorState(baud_rate=power_on_baud)
         self._power_on_baud = power_on_baud
         self._power_on_message = power_on_message
@@ -136,7 +149,7 @@ class Lms200Emulator:
         self._master, self._slave = master, slave
         self.device_path = os.ttyname(slave)
         self._set_host_baud(self._power_on_baud)
-        self._t0 = time.monotonic()
+        self._t0 = self._clock()
         self._tx_time = self._t0
         if self._power_on_message:
             self._schedule(self.boot_s, reply_frame(0x90, self.type_text.encode("ascii")))
@@ -177,7 +190,7 @@ class Lms200Emulator:
 
     @property
     def time_s(self) -> float:
-        return time.monotonic() - self._t0
+        return self._clock() - self._t0
 
     # ---------------------------------------------------------------------------------------
     # The line
@@ -206,7 +219,7 @@ class Lms200Emulator:
     def _schedule(
         self, delay_s: float, data: bytes, then: Callable[[], None] | None = None
     ) -> None:
-        self._pending.append((time.monotonic() + delay_s, data, then))
+        self._pending.append((self._clock() + delay_s, data, then))
 
     def _send(self, data: bytes) -> None:
         self._out += data if self._line_ok() else self._garble(data)
@@ -245,7 +258,7 @@ class Lms200Emulator:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            now = time.monotonic()
+            now = self._clock()
             wait = 0.002 if (self._out or self._pending or self.state.streaming) else 0.02
             try:
                 readable, _, _ = select.select([self._master], [], [], wait)
@@ -260,7 +273,7 @@ class Lms200Emulator:
                     return
                 if data and not self._muted:
                     self._receive(data)
-            now = time.monotonic()
+            now = self._clock()
             due = [item for item in self._pending if item[0] <= now]
             if due:
                 self._pending = [item for item in self._pending if item[0] > now]
@@ -402,6 +415,10 @@ class Lms200Emulator:
 
     def _start_stream(self) -> None:
         self.state.streaming = True
+        if self.stream is not None:
+            self._streamed = self.stream(self._clock())
+            self._next_scan = math.inf if self._streamed is None else self._streamed[0]
+            return
         # Telegrams start at mirror-turn boundaries: the next turn after now.
         self._turn = int(self.time_s / TURN_S) + 1
         self._next_scan = self._t0 + self._turn * TURN_S
@@ -429,6 +446,17 @@ class Lms200Emulator:
 
     def _emit_scan(self, now: float) -> None:
         state = self.state
+        if self.stream is not None:
+            if self._out or self._streamed is None:
+                return  # the line is busy: send it when free, never before its start
+            start_s, telegram = self._streamed
+            self._tx_time = max(self._tx_time, start_s)
+            self._send(telegram)
+            self._out_is_scan = True
+            state.scans_sent += 1
+            self._streamed = self.stream(start_s)
+            self._next_scan = math.inf if self._streamed is None else self._streamed[0]
+            return
         interval = scan_interval_s(
             state.baud_rate, self._count(), state.resolution_deg, state.config.realtime_indices
         )

@@ -40,3 +40,48 @@ def dataset_check(
         )
     if check.errors:
         raise typer.Exit(code=2)
+
+
+@dataset_app.command("merge")
+@cli_errors
+def dataset_merge(
+    recordings: Annotated[list[Path], typer.Argument(help="Recording folders, one per robot.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to write.")],
+    mission: Annotated[
+        Path | None, typer.Option(help="mission.yaml: robots (gauge first), start poses, config.")
+    ] = None,
+    robot: Annotated[
+        list[str] | None,
+        typer.Option(help="Instead of --mission: NAME=X_M,Y_M,YAW_DEG (repeat; gauge first)."),
+    ] = None,
+    mission_start: Annotated[
+        float | None, typer.Option(help="Reference-clock time of mission time 0.")
+    ] = None,
+    tolerance: Annotated[
+        float, typer.Option(help="Seconds within which two recordings' events are one.")
+    ] = 0.5,
+    config: Annotated[
+        Path | None, typer.Option("--config", "-c", help="YAML merged over the mission's config.")
+    ] = None,
+) -> None:
+    """Merge robots' recordings (coopmap record) into one dataset on the mission clock."""
+    from estimation.app.config import ConfigError
+    from estimation.app.merge import merge_recordings
+    from sensors.yamlio import read_yaml_mapping
+
+    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    result = merge_recordings(
+        recordings, out, mission=mission, robots=robot, overrides=overrides,
+        mission_start_ref_s=mission_start, tolerance_s=tolerance,
+    )  # fmt: skip
+    for warning in result.warnings:
+        typer.echo(f"coopmap: warning: {warning}", err=True)
+    clocks = ", ".join(
+        f"{name} rate {m.rate:.6f} ±{m.uncertainty_s * 1e3:.2f} ms"
+        for name, m in result.clocks.items()
+    )
+    typer.echo(
+        f"wrote {out}: robots {', '.join(result.robots)}, {result.events} events "
+        f"({result.dwells} dwells), mission start at reference {result.mission_start_ref_s:.6f} s; "
+        f"clocks: {clocks}"
+    )

@@ -12,7 +12,7 @@ import sys
 
 import typer
 
-from estimation.app.cli import bench, dataset, lms, localize, mission, world
+from estimation.app.cli import bench, calibrate, dataset, lms, localize, mission, record, world
 
 __all__ = ["app", "main"]
 
@@ -35,7 +35,11 @@ app.add_typer(world.world_app, name="world")
 app.add_typer(world.config_app, name="config")
 app.add_typer(bench.bench_app, name="bench")
 app.add_typer(lms.lms_app, name="lms")
+app.add_typer(calibrate.calibrate_app, name="calibrate")
 app.add_typer(dataset.dataset_app, name="dataset")
+app.command()(record.record)
+app.command()(record.replay)
+app.add_typer(record.clock_app, name="clock")
 
 
 def main() -> None:
