@@ -422,7 +422,7 @@ def write_dataset(
                     scans.append((rows, scanner.scan(scenes(scene_time), T[rows], chunk[rows], rng,
                                                      cylinders=cylinders[rows])))  # fmt: skip
                 merged = _merge(scans, len(chunk))
-                for stamp, data in scan_stream(merged, baud_rate=baud_rate):
+                for stamp, data in scan_stream(merged, baud_rate=baud_rate, first_telegram=start):
                     writer.write(stamp, data)
                     telegrams += 1
                 if progress is not None:

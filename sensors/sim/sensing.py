@@ -303,12 +303,14 @@ def scan_stream(
     unit_mm: bool = True,
     clock_offset_s: float = 0.0,
     latency_s: float = 0.002,
+    first_telegram: int = 0,
 ) -> list[tuple[float, bytes]]:
     """The bytes the sensor sends for these scans, as (host receive stamp, telegram) chunks.
 
-    Telegrams carry the real-time indices (the mirror-turn counter mod 256, and a telegram
-    counter); each is stamped when its last byte would reach the host: the end of the
-    measuring turn, plus the transmission at ``baud_rate``, plus a fixed latency.
+    Telegrams carry the real-time indices (the mirror-turn counter mod 256, and the telegram
+    counter mod 256, counting on from ``first_telegram`` across calls); each is stamped when its
+    last byte would reach the host: the end of the measuring turn, plus the transmission at
+    ``baud_rate``, plus a fixed latency.
     """
     chunks = []
     for k, t in enumerate(scans.times_s):
@@ -320,7 +322,7 @@ def scan_stream(
             measuring_mode=measuring_mode,
             unit_mm=unit_mm,
             scan_index=turn & 0xFF,
-            telegram_index=k & 0xFF,
+            telegram_index=(first_telegram + k) & 0xFF,
         )
         arrival = t + TURN_S + len(telegram) * 10.0 / baud_rate + latency_s + clock_offset_s
         chunks.append((arrival, telegram))

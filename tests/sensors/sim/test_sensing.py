@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -92,3 +93,24 @@ def test_free_space_respects_walls_doors_and_obstacles() -> None:
 def test_free_space_needs_sane_parameters() -> None:
     with pytest.raises(SensorError, match="positive resolution"):
         free_space(big_room(), robot_radius_m=0.0, robot_height_m=0.3)
+
+
+def test_the_telegram_counter_runs_on_across_chunks_of_a_mission(tmp_path: Path) -> None:
+    """A simulated capture's telegram index counts on mod 256, as the sensor's does."""
+    from estimation.app.sim.simulate import run_simulation
+    from sensors.lms200.capture import CaptureReader
+    from sensors.lms200.protocol.scan import decode_scan
+    from sensors.lms200.protocol.stream import StreamParser, Telegram
+    from tests.paths import REPO
+
+    out = tmp_path / "essex"
+    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+    parser = StreamParser()
+    indices = [
+        decode_scan(event).telegram_index
+        for _, chunk in CaptureReader(out / "robots" / "a" / "lms.cap").chunks()
+        for event in parser.feed(chunk)
+        if isinstance(event, Telegram)
+    ]
+    assert len(indices) > 3000  # more than one 1,500-scan chunk
+    assert set(np.diff(np.array(indices, dtype=int)) % 256) == {1}
