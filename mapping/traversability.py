@@ -1,0 +1,138 @@
+"""Where a robot may drive on the map as estimated, and where the map ends: frontiers.
+
+The mission loop plans on the estimated 3D grid, never on the true world (docs/design.md §13).
+A floor column is an **obstacle** when a cell at the robot's body height is occupied, **free**
+when enough of those cells were seen empty, and **unknown** otherwise. The robot's centre may
+stand where the disc of its radius (plus a margin) holds no obstacle and its radius holds no
+unknown column either: it never drives into what nobody has seen. **Frontier** cells are free
+cells that reach to within one cell beyond the robot's radius of unknown space; connected
+frontier cells form a frontier, and a frontier reachable from the robot is a place to look next.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from mapping.band import Band, extract_band
+from mapping.errors import MapError
+from mapping.grid import OccupancyGrid
+from sensors.sim.planner import FreeSpace
+
+__all__ = ["FloorMap", "Frontier", "drivable_space", "floor_map", "frontiers"]
+
+
+@dataclass(frozen=True)
+class FloorMap:
+    """Floor columns of the estimated map: (H, W) masks, row = y, column = x."""
+
+    obstacle: np.ndarray
+    free: np.ndarray
+    lower_xy: np.ndarray
+    resolution_m: float
+
+    @property
+    def unknown(self) -> np.ndarray:
+        return np.asarray(~(self.obstacle | self.free))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        rows, cols = self.obstacle.shape
+        return rows, cols
+
+
+@dataclass(frozen=True)
+class Frontier:
+    """Connected free cells at the edge of the known map."""
+
+    cells: np.ndarray  # (N, 2) (row, col)
+    centroid_xy: np.ndarray  # (2,) map frame
+    size: int
+
+
+def floor_map(
+    grid: OccupancyGrid,
+    *,
+    body_z_m: tuple[float, float],
+    free_min_observed: float = 0.5,
+    max_gap_m2: float = 0.05,
+    lower_xy: np.ndarray | tuple[float, float] | None = None,
+    upper_xy: np.ndarray | tuple[float, float] | None = None,
+) -> FloorMap:
+    """The floor columns of ``grid`` between the heights ``body_z_m`` (above the floor cells
+    themselves, up to the robot's top); a column is free when at least ``free_min_observed`` of
+    its layers were seen and none is occupied. Unseen patches of at most ``max_gap_m2`` inside
+    free floor (not at an obstacle or the border) are gaps between rays and count as free.
+    MapError when the band holds nothing seen."""
+    band: Band = extract_band(
+        grid, body_z_m[0], body_z_m[1], free_min_observed=free_min_observed,
+        lower_xy=lower_xy, upper_xy=upper_xy,
+    )  # fmt: skip
+    obstacle = band.known & (band.occupancy > 0.0)
+    free = band.known & ~obstacle
+    # Far from the scanner, rays thin out: single unseen columns between seen-free ones are
+    # gaps in the sampling, not unexplored space (they would make frontiers everywhere).
+    res = band.resolution_m
+    gaps, count = ndimage.label(~(obstacle | free))
+    if count:
+        sizes = np.bincount(gaps.ravel(), minlength=count + 1)
+        touching = np.zeros(count + 1, dtype=bool)
+        border = np.concatenate([gaps[0], gaps[-1], gaps[:, 0], gaps[:, -1]])
+        touching[border] = True
+        touching[gaps[ndimage.binary_dilation(obstacle, structure=np.ones((3, 3)))]] = True
+        small = (sizes * res * res <= max_gap_m2) & ~touching
+        small[0] = False
+        free |= small[gaps]
+    return FloorMap(obstacle, free, band.lower_xy, res)
+
+
+def drivable_space(floor: FloorMap, *, robot_radius_m: float, margin_m: float = 0.1) -> FreeSpace:
+    """Where the robot's centre may be: ``robot_radius_m + margin_m`` clear of obstacles and
+    ``robot_radius_m`` clear of unknown columns (a map border counts as unknown)."""
+    if not robot_radius_m > 0 or margin_m < 0:
+        raise MapError(f"need a positive robot radius and a margin >= 0, got {robot_radius_m}, "
+                       f"{margin_m}")  # fmt: skip
+    res = floor.resolution_m
+    to_obstacle = _distance_to(floor.obstacle, res)
+    to_unknown = _distance_to(floor.unknown, res)
+    free = floor.free & (to_obstacle > robot_radius_m + margin_m) & (to_unknown > robot_radius_m)
+    return FreeSpace(free, np.minimum(to_obstacle, to_unknown), floor.lower_xy, res)
+
+
+def frontiers(
+    floor: FloorMap,
+    space: FreeSpace,
+    *,
+    robot_radius_m: float,
+    from_xy: np.ndarray | tuple[float, float] | None = None,
+    min_cells: int = 3,
+) -> list[Frontier]:
+    """Frontiers of the drivable space, largest first; with ``from_xy`` only those the robot
+    standing there can reach. Frontiers of fewer than ``min_cells`` cells are dropped."""
+    res = floor.resolution_m
+    near_unknown = _distance_to(floor.unknown, res) <= robot_radius_m + 1.5 * res
+    edge = space.free & near_unknown
+    if from_xy is not None:
+        if not space.is_free(from_xy):
+            raise MapError(f"the robot at {tuple(map(float, from_xy))} stands outside the "
+                           "drivable space of the estimated map")  # fmt: skip
+        edge &= space.component_of(from_xy)
+    labels, count = ndimage.label(edge, structure=np.ones((3, 3)))
+    found = []
+    for label in range(1, count + 1):
+        cells = np.argwhere(labels == label)
+        if len(cells) < min_cells:
+            continue
+        centroid = floor.lower_xy + (cells[:, ::-1].mean(axis=0) + 0.5) * res
+        found.append(Frontier(cells, centroid, len(cells)))
+    return sorted(found, key=lambda f: -f.size)
+
+
+def _distance_to(mask: np.ndarray, resolution_m: float) -> np.ndarray:
+    """Distance (m) from each cell to the nearest cell of ``mask``; cells beyond the grid's
+    border count as part of the mask."""
+    padded = np.pad(mask, 1, constant_values=True)
+    distance = ndimage.distance_transform_edt(~padded) * resolution_m
+    return np.asarray(distance[1:-1, 1:-1])
