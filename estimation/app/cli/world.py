@@ -51,6 +51,38 @@ def world_show(
     )
 
 
+@world_app.command("generate")
+@cli_errors
+def world_generate(
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the building (>= 0).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="World YAML file to write.")],
+    rooms: Annotated[
+        int | None, typer.Option("--rooms", help="Number of rooms, 3-15 (default: from the seed).")
+    ] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Generate a building (rooms, doors, ceiling structure, furniture) as a world file."""
+    from sensors.sim.furnish import FurnishParams
+    from sensors.sim.generate import write_generated_world
+
+    cfg = option_config(config)
+    params = FurnishParams(
+        band_m=(cfg.bands.ceiling.min_m, cfg.bands.ceiling.max_m),
+        robot_radius_m=cfg.robot.footprint_radius_m,
+        beacon_height_m=cfg.beacon.height_m,
+        beacon_length_m=cfg.beacon.length_m,
+    )
+    building = write_generated_world(out, seed, rooms, params)
+    model = building.world
+    kinds = ", ".join(f"{n} {kind}" for kind, n in sorted(building.kinds().items()))
+    ceilings = [room.ceiling_m for room in building.rooms]
+    make_console().print(
+        f"wrote {out} ({file_size(out)}): {model.name}, {len(model.rooms)} rooms ({kinds}), "
+        f"ceilings {min(ceilings):g}-{max(ceilings):g} m, "
+        f"{len(model.boxes) + len(model.cylinders)} objects ({len(model.movable_names())} movable)"
+    )
+
+
 @world_app.command("list")
 @cli_errors
 def world_list(config: ConfigOption = None) -> None:
