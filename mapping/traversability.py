@@ -19,9 +19,10 @@ from scipy import ndimage
 from mapping.band import Band, extract_band
 from mapping.errors import MapError
 from mapping.grid import OccupancyGrid
+from mapping.kernels.traversal import ray_cells
 from sensors.sim.planner import FreeSpace
 
-__all__ = ["FloorMap", "Frontier", "drivable_space", "floor_map", "frontiers"]
+__all__ = ["FloorMap", "Frontier", "drivable_space", "floor_map", "frontiers", "line_of_sight"]
 
 
 @dataclass(frozen=True)
@@ -128,6 +129,34 @@ def frontiers(
         centroid = floor.lower_xy + (cells[:, ::-1].mean(axis=0) + 0.5) * res
         found.append(Frontier(cells, centroid, len(cells)))
     return sorted(found, key=lambda f: -f.size)
+
+
+def line_of_sight(
+    grid: OccupancyGrid,
+    start_m: np.ndarray,
+    end_m: np.ndarray,
+    *,
+    end_clearance_m: float = 0.15,
+    unknown_blocks: bool = True,
+) -> bool:
+    """Whether the segment start → end (map frame, metres) crosses no occupied cell of the
+    estimated map, nor (with ``unknown_blocks``) a cell nobody has seen; the last
+    ``end_clearance_m`` before the end (the target itself, e.g. a beacon's cylinder) is not
+    tested. The cells are those the fusion's own traversal visits."""
+    start = np.asarray(start_m, dtype=float)
+    end = np.asarray(end_m, dtype=float)
+    length = float(np.linalg.norm(end - start))
+    if not (np.isfinite(start).all() and np.isfinite(end).all()):
+        raise MapError(f"line of sight needs finite end points, got {start} and {end}")
+    if length <= end_clearance_m:
+        return True
+    stop = start + (end - start) * (1.0 - end_clearance_m / length)
+    origin, res = grid.origin_m, grid.resolution_m
+    cells = ray_cells((start - origin) / res, (stop - origin) / res, True)
+    values = grid.logodds_at(cells)
+    if unknown_blocks and np.isnan(values).any():
+        return False
+    return not bool(np.any(values > grid.params.logodds_threshold))
 
 
 def _distance_to(mask: np.ndarray, resolution_m: float) -> np.ndarray:

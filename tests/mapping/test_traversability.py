@@ -7,7 +7,7 @@ import pytest
 
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
-from mapping.traversability import drivable_space, floor_map, frontiers
+from mapping.traversability import drivable_space, floor_map, frontiers, line_of_sight
 from tests.mapping.conftest import room_scan
 
 ROOM = (10.0, 3.0, 2.5)
@@ -92,3 +92,18 @@ def test_unseen_gaps_between_far_rays_count_as_free_floor() -> None:
     assert not (filled.free & filled.obstacle).any()
     assert (filled.free | ~strict.free).all()  # only unknown cells became free
     assert (filled.obstacle == strict.obstacle).all()
+
+
+def test_line_of_sight_is_blocked_by_walls_and_by_what_nobody_saw(grid: OccupancyGrid) -> None:
+    beacon_z = 1.6
+    assert line_of_sight(grid, np.array([1.5, 1.5, 0.4]), np.array([3.0, 1.0, beacon_z]))
+    # Through the wall at y = 3 to a point outside the room: the wall is occupied.
+    outside = np.array([1.5, 4.0, 1.0])
+    assert not line_of_sight(grid, SENSOR, outside, unknown_blocks=False)
+    # Towards the end of the room nobody saw: unknown blocks unless told otherwise.
+    far = np.array([8.5, 1.5, 0.4])
+    assert not line_of_sight(grid, SENSOR, far)
+    assert line_of_sight(grid, SENSOR, far, unknown_blocks=False)
+    assert line_of_sight(grid, SENSOR, SENSOR + 0.1)  # shorter than the end clearance
+    with pytest.raises(MapError, match="finite end points"):
+        line_of_sight(grid, SENSOR, np.array([np.nan, 0.0, 0.0]))
