@@ -18,6 +18,7 @@ import numpy as np
 from sensors.atomic import write_text_atomic
 from sensors.errors import TrajectoryError
 from sensors.geometry.se2 import wrap_angle
+from sensors.yamlio import regular_file
 
 __all__ = [
     "G2oGraph",
@@ -30,12 +31,29 @@ __all__ = [
 ]
 
 
+#: The longest line a trajectory file may hold: a g2o edge with its information matrix is about
+#: 200 characters; a file of one endless line is not read into memory.
+MAX_LINE_CHARS = 1 << 16
+
+
 def _lines(path: Path) -> Iterator[tuple[int, list[str]]]:
-    """(line number, fields) of the non-blank, non-comment lines of a text or .gz file."""
+    """(line number, fields) of the non-blank, non-comment lines of a text or .gz file.
+
+    A FIFO, a device or a directory is refused before it is opened, and a line longer than
+    ``MAX_LINE_CHARS`` is an error, so reading never blocks and never fills memory.
+    """
+    if path.exists():  # a missing file stays the OSError that open() raises
+        regular_file(path, TrajectoryError)
     opener = gzip.open if path.suffix == ".gz" else open
     try:
         with opener(path, "rt", encoding="utf-8") as handle:
-            for number, line in enumerate(handle, start=1):
+            number = 0
+            while line := handle.readline(MAX_LINE_CHARS + 1):
+                number += 1
+                if len(line) > MAX_LINE_CHARS:
+                    raise TrajectoryError(
+                        f"{path}:{number}: a line longer than {MAX_LINE_CHARS:,} characters"
+                    )
                 fields = line.split()
                 if fields and not fields[0].startswith("#"):
                     yield number, fields

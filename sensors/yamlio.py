@@ -17,6 +17,7 @@ from pydantic import BaseModel, ValidationError
 
 __all__ = [
     "YAML_LIMIT_BYTES",
+    "YAML_MAX_DEPTH",
     "format_validation_error",
     "merge_mappings",
     "parse_yaml",
@@ -133,9 +134,17 @@ def read_text_file(path: Path | str, error: type[Exception], limit_bytes: int) -
         raise error(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
+#: Deepest nesting of collections a YAML document may have; coopmap's files nest a few levels.
+#: PyYAML's scanner slows quadratically with flow nesting, so a deep document is refused early.
+YAML_MAX_DEPTH = 100
+
+
 class _NoAliasLoader(yaml.SafeLoader):
     """PyYAML's safe loader without anchors and aliases: an alias bomb (a few hundred bytes that
-    expand to gigabytes) is refused at its first alias."""
+    expand to gigabytes) is refused at its first alias, and a document nested deeper than
+    ``YAML_MAX_DEPTH`` at its first node that deep."""
+
+    _depth = 0
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
@@ -143,7 +152,16 @@ class _NoAliasLoader(yaml.SafeLoader):
             raise yaml.composer.ComposerError(
                 None, None, "aliases (*name) are not allowed", event.start_mark
             )
-        return super().compose_node(parent, index)
+        if self._depth >= YAML_MAX_DEPTH:
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(
+                None, None, f"nested more than {YAML_MAX_DEPTH} levels deep", event.start_mark
+            )
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
 
 
 def parse_yaml(text: str, source: str, error: type[Exception]) -> Any:

@@ -86,6 +86,21 @@ def test_heavy_modules_are_imported_inside_functions(heavy: str) -> None:
     assert bad == []
 
 
+#: Where ROS interchange libraries may be imported at module level (the application's edge).
+ROS_FOLDER = "estimation/app/ros/"
+
+
+@pytest.mark.parametrize("heavy", ["rosbags", "mcap", "mcap_ros2", "foxglove"])
+def test_ros_libraries_stay_in_the_ros_interchange(heavy: str) -> None:
+    bad = [
+        relative(p)
+        for p in sources()
+        if any(n == heavy and top for n, top in imports(p))
+        and not relative(p).startswith(ROS_FOLDER)
+    ]
+    assert bad == []
+
+
 def test_the_checker_sees_module_level_imports(tmp_path: Path) -> None:
     sample = tmp_path / "sample.py"
     sample.write_text(
@@ -106,8 +121,8 @@ def test_help_does_not_load_heavy_modules() -> None:
         "from estimation.app.cli.main import app\n"
         "result = CliRunner().invoke(app, ['--help'])\n"
         "assert result.exit_code == 0, result.output\n"
-        "print(sorted(m for m in ('open3d', 'gtsam', 'matplotlib', 'numba', 'serial') "
-        "if m in sys.modules))\n"
+        "print(sorted(m for m in ('open3d', 'gtsam', 'matplotlib', 'numba', 'serial', 'rosbags', "
+        "'mcap', 'foxglove') if m in sys.modules))\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True

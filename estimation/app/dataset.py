@@ -49,6 +49,7 @@ __all__ = [
     "load_dataset",
     "mapping_sweeps",
     "parse_event",
+    "read_pose_stamps",
     "read_robots",
     "relocalization_dwells",
     "stations",
@@ -58,6 +59,8 @@ __all__ = [
 Progress = Callable[[str], None]
 #: events.jsonl of a very long mission (a line per move and dwell) stays far below this.
 EVENTS_LIMIT_BYTES = 256 * 2**20
+#: A pose is stamped at least this long after the robot arrived (docs/results.md).
+SETTLE_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -79,6 +82,43 @@ class Dataset:
                 times[int(e["to_index"])] = float(e["t_s"])
         return times
 
+    def pose_stamps(self, robot: str, odometry_stamps_s: np.ndarray) -> dict[int, float]:
+        """The instant each pose index of ``robot`` is stamped with (``poses/<robot>.tum``).
+
+        The robot stands still from its arrival until it next departs, so its pose holds at any
+        instant in between: the stamp is the first odometry sample at least ``SETTLE_S`` after
+        the arrival, or arrival + ``SETTLE_S`` when no sample comes before the departure. On
+        the odometry's grid, trajectory tools associate the pose with samples logged at the
+        odometry's instants (the simulator's ground truth shares them) without a tolerance.
+        """
+        stamps = np.sort(np.asarray(odometry_stamps_s, dtype=float))
+        departures = {
+            int(e["from_index"]): float(e["start_s"])
+            for e in self.events
+            if e["event"] == "move" and e["robot"] == robot
+        }
+        out = {}
+        for index, arrived in self.stop_times(robot).items():
+            wanted = arrived + SETTLE_S
+            leaves = departures.get(index, math.inf)
+            # A microsecond of slack: odometry logs keep 6 decimals.
+            k = int(np.searchsorted(stamps, wanted - 1e-6))
+            if k < len(stamps) and stamps[k] < leaves:
+                out[index] = float(stamps[k])
+            else:
+                out[index] = wanted if wanted < leaves else arrived
+        return out
+
+
+def read_pose_stamps(dataset: Dataset) -> dict[str, dict[int, float]]:
+    """Every robot's pose stamps (:meth:`Dataset.pose_stamps`) from its ``odometry.tum``."""
+    return {
+        robot: dataset.pose_stamps(
+            robot, read_tum(dataset.path / "robots" / robot / "odometry.tum")[0]
+        )
+        for robot in dataset.robots
+    }
+
 
 def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> Dataset:
     """Read ``mission.yaml`` and ``events.jsonl``; the effective config is the mission's, with
@@ -87,7 +127,7 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     mission_file = path / "mission.yaml"
     events_file = path / "events.jsonl"
     for needed in (mission_file, events_file):
-        if not needed.is_file():
+        if not needed.exists():  # a FIFO or a folder in its place is refused when it is read
             raise ConfigError(f"{path}: not a coopmap dataset ({needed.name} is missing)")
     mission = read_yaml_mapping(mission_file, ConfigError)
     if "robots" not in mission:
@@ -112,6 +152,8 @@ def parse_event(line: str, robots: list[str], where: str) -> dict[str, Any]:
         event = json.loads(line)
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{where}: not JSON: {exc.msg}") from None
+    except RecursionError:
+        raise ConfigError(f"{where}: not an event: JSON nested too deeply") from None
     if not isinstance(event, dict) or "event" not in event or "t_s" not in event:
         raise ConfigError(f"{where}: an event needs 'event' and 't_s'")
     _check_event(event, robots, where)
@@ -210,6 +252,7 @@ class RobotStream:
     checksum_failures: int = 0
     bytes_skipped: int = 0
     truncated_bytes: int = 0
+    corrupt_bytes: int = 0  # records lost to damaged record headers (the capture resynchronised)
     implausible: dict[str, int] = field(default_factory=dict)  # scans rejected, by reason
 
     @property
@@ -264,6 +307,7 @@ def decode_robot(
         checksum_failures=parser.stats.checksum_failures,
         bytes_skipped=parser.stats.bytes_skipped,
         truncated_bytes=reader.truncated_bytes,
+        corrupt_bytes=reader.corrupt_bytes,
         implausible=implausible,
     )
 

@@ -305,6 +305,7 @@ def _check_sweeps(
             continue
         streams[robot] = stream
         damage = {
+            "bytes of records with damaged headers": stream.corrupt_bytes,
             "checksum failures": stream.checksum_failures,
             "undecodable telegrams": stream.undecodable,
             "bytes skipped": stream.bytes_skipped,

@@ -30,6 +30,7 @@ from estimation.app.dataset import (
     decode_robot,
     load_dataset,
     mapping_sweeps,
+    read_pose_stamps,
     relocalization_dwells,
     stations,
 )
@@ -39,7 +40,7 @@ from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
 from estimation.posegraph.keys import key_label, pose_key, split_key
-from estimation.posegraph.smoother import BatchResult, optimize_batch
+from estimation.posegraph.smoother import BatchResult, marginal_covariances, optimize_batch
 from estimation.posegraph.validate import validate_and_repair
 from estimation.search.stations import (
     SEARCH_STAGES,
@@ -52,7 +53,10 @@ from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams
 from sensors.atomic import check_replaceable
+from sensors.errors import SensorError
 from sensors.geometry.frames import pose2_matrix
+from sensors.lms200.capture import CaptureReader
+from sensors.trajio import read_tum
 
 __all__ = ["Prepared", "Solution", "Timings", "prepare", "run_batch", "run_isam"]
 
@@ -109,10 +113,16 @@ def prepare(
     streams: dict[str, RobotStream] = {}
     scanner = dataset.config.scanner
     limits = scan_limits(dataset.config)
+    for robot in dataset.robots:  # a malformed odometry fails now, not after the decoding
+        read_tum(dataset.path / "robots" / robot / "odometry.tum")
     for robot in dataset.robots:
         if progress is not None:
             progress(f"decoding robot {robot}")
         capture = dataset.path / "robots" / robot / "lms.cap"
+        if not CaptureReader(capture).is_capture:
+            # Its scans have no receive stamps, so no dwell could ever select one.
+            raise SensorError(f"{capture}: a plain binary dump (no capture header): a mission "
+                              "needs receive stamps (docs/dataset.md)")  # fmt: skip
         streams[robot] = decode_robot(capture, scanner.measuring_mode, limits)
     decode = time.perf_counter() - clock
     clock = time.perf_counter()
@@ -198,7 +208,15 @@ def _finish(
         GridParams(**config.grid.model_dump()),
     )
     timings = dataclasses.replace(timings, fusion=time.perf_counter() - clock)
-    stamps = {r: dataset.stop_times(r) for r in dataset.robots}
+    stamps = read_pose_stamps(dataset)
+    covariances: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
+    kept = [f for f, inlier in zip(solution.factors, solution.inliers, strict=True) if inlier]
+    try:
+        for key, covariance in marginal_covariances(kept, solution.estimate).items():
+            robot, index = split_key(key)
+            covariances[robot][index] = covariance
+    except EstimationError as exc:
+        extra = {**extra, "covariances": f"not written: {exc}"}
     builder, factors, inliers, counts = (
         solution.builder, solution.factors, solution.inliers, prepared.counts
     )  # fmt: skip
@@ -212,6 +230,7 @@ def _finish(
                 "checksum_failures": prepared.streams[r].checksum_failures,
                 "bytes_skipped": prepared.streams[r].bytes_skipped,
                 "truncated_bytes": prepared.streams[r].truncated_bytes,
+                "corrupt_bytes": prepared.streams[r].corrupt_bytes,
                 "implausible_scans": prepared.streams[r].implausible_scans,
                 "implausible": prepared.streams[r].implausible,
                 "poses": len(poses[r]),
@@ -231,7 +250,9 @@ def _finish(
         "timings_s": timings.as_json(),
         **extra,
     }
-    output = BatchOutput(out, poses, stamps, prepared.sweeps, factors, inliers, grid, report)
+    output = BatchOutput(
+        out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances
+    )
     write_results(output, config)
     return output
 

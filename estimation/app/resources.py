@@ -47,6 +47,6 @@ def resolve_builtin(kind: str, name_or_path: str | Path) -> Path:
     known = ", ".join(builtin_names(kind)) or "none"
     singular = kind.rstrip("s")
     raise ConfigError(
-        f"{name_or_path!r} is neither a {singular} file nor a built-in {singular} "
+        f"{str(name_or_path)!r} is neither a {singular} file nor a built-in {singular} "
         f"(built-in: {known})"
     )

@@ -1,8 +1,9 @@
 """The result directory of a run (docs/design.md §12), written whole or not at all.
 
-``poses/<robot>.tum`` (one line per pose index, stamped when the robot stopped there),
-``graph.g2o`` (vertices and relative-pose edges with their information; the gauge as FIX),
-``map.npz`` (lossless, versioned), ``map.ply`` (occupied voxel centres), ``ceiling.pgm`` +
+``poses/<robot>.tum`` (one line per pose index, stamped at an instant the robot stood still
+there), ``covariances.json`` (the poses' marginal covariances), ``graph.g2o`` (vertices and
+relative-pose edges with their information; the gauge as FIX), ``map.npz`` (lossless,
+versioned), ``map.ply`` (occupied voxel centres), ``map.bt`` (OctoMap), ``ceiling.pgm`` +
 ``ceiling.yaml`` (ROS map_server), ``figures/*.png``, ``report.md``, ``report.json`` and the
 effective ``config.yaml``. Everything goes to a fresh sibling folder that replaces the old
 result only when all of it was written.
@@ -24,6 +25,7 @@ from estimation.posegraph.keys import key_label, pose_key
 from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import save_map
+from mapping.formats.octomap_bt import write_bt
 from mapping.formats.pgm import write_band_pgm
 from mapping.formats.ply import write_grid_ply
 from sensors.atomic import replace_directory, write_text_atomic
@@ -34,13 +36,22 @@ if TYPE_CHECKING:
     from estimation.posegraph.graph import FactorSpec
     from mapping.grid import OccupancyGrid
 
-__all__ = ["BatchOutput", "graph_to_g2o", "report_markdown", "write_results"]
+__all__ = [
+    "COVARIANCES_FORMAT",
+    "COVARIANCES_VERSION",
+    "BatchOutput",
+    "covariances_json",
+    "graph_to_g2o",
+    "report_markdown",
+    "write_results",
+]
 
 
 @dataclass
 class BatchOutput:
     """A run's result: poses per robot and pose index, their stamps, the sweeps, the factors
-    solved and their inlier flags, the fused grid, and the report (``report.json``)."""
+    solved and their inlier flags, the fused grid, the report (``report.json``) and the poses'
+    marginal covariances (3×3, gtsam's tangent space) per robot and pose index."""
 
     out_dir: Path
     poses: dict[str, dict[int, np.ndarray]]
@@ -50,6 +61,7 @@ class BatchOutput:
     inliers: np.ndarray
     grid: OccupancyGrid
     report: dict[str, Any] = field(default_factory=dict)
+    covariances: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
 
 
 def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
@@ -95,10 +107,16 @@ def write_results(output: BatchOutput, config: Config) -> None:
             write_tum(
                 work / "poses" / f"{robot}.tum", stamps, np.array([poses[i] for i in indices])
             )
+        if any(output.covariances.values()):
+            write_text_atomic(work / "covariances.json", covariances_json(output))
         graph, ids = graph_to_g2o(output)
         write_g2o(work / "graph.g2o", graph)
         save_map(work / "map.npz", output.grid)
         occupied = write_grid_ply(work / "map.ply", output.grid)
+        try:
+            write_bt(work / "map.bt", output.grid)
+        except MapError as exc:
+            output.report["octomap"] = f"not written: {exc}"
         band = config.bands.ceiling
         try:
             ceiling = extract_band(
@@ -123,6 +141,31 @@ def write_results(output: BatchOutput, config: Config) -> None:
         write_text_atomic(
             work / "report.json", json.dumps(output.report, indent=1, default=float) + "\n"
         )
+
+
+#: ``covariances.json``: its format name and version.
+COVARIANCES_FORMAT, COVARIANCES_VERSION = "coopmap.covariances", 1
+
+
+def covariances_json(output: BatchOutput) -> str:
+    """``covariances.json``: per robot, the pose indices of ``poses/<robot>.tum`` (line by line)
+    and each pose's 3×3 marginal covariance in gtsam's tangent space of the pose (x_m, y_m
+    along the robot's axes, yaw_rad)."""
+    robots = {}
+    for robot, poses in output.poses.items():
+        indices = [i for i in sorted(poses) if i in output.covariances.get(robot, {})]
+        if indices:
+            robots[robot] = {
+                "indices": indices,
+                "covariances": [output.covariances[robot][i].tolist() for i in indices],
+            }
+    document = {
+        "format": COVARIANCES_FORMAT,
+        "version": COVARIANCES_VERSION,
+        "frame": "tangent space of each pose: x_m, y_m along the robot's axes, yaw_rad",
+        "robots": robots,
+    }
+    return json.dumps(document, indent=1) + "\n"
 
 
 def report_markdown(output: BatchOutput, metrics: dict[str, Any] | None = None) -> str:

@@ -22,6 +22,7 @@ import hashlib
 import itertools
 import time
 import zipfile
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,6 +53,7 @@ __all__ = [
     "extract_poses",
     "factor_fingerprint",
     "lago_initial_values",
+    "marginal_covariances",
     "optimize_batch",
     "relative_covariances",
     "truncated_cost",
@@ -59,6 +61,8 @@ __all__ = [
 
 RobustMode = Literal["gnc_tls", "huber", "cauchy", "none"]
 _CHECKPOINT_VERSION = 1
+#: The largest array a checkpoint may hold (poses of a mission of millions of stops).
+_CHECKPOINT_MEMBER_LIMIT = 256 * 2**20
 
 
 def extract_poses(values: gtsam.Values) -> dict[int, np.ndarray]:
@@ -162,6 +166,22 @@ def optimize_batch(
         seconds=time.perf_counter() - start,
         covariances=covariances,
     )
+
+
+def marginal_covariances(
+    factors: Sequence[FactorSpec], estimate: Mapping[int, np.ndarray]
+) -> dict[int, np.ndarray]:
+    """The 3×3 marginal covariance of every pose of ``estimate`` in the graph of ``factors``
+    (without robust kernels) linearized at ``estimate``, in gtsam's tangent space of the pose:
+    (x_m, y_m) along the pose's own axes, then yaw_rad. Factors on poses outside ``estimate``
+    are left out."""
+    kept = [f for f in factors if all(k in estimate for k in f.keys)]
+    try:
+        marginals = gtsam.Marginals(to_gtsam_graph(kept), to_gtsam_values(estimate))
+        out = {k: np.asarray(marginals.marginalCovariance(k)) for k in estimate}
+    except RuntimeError as exc:
+        raise EstimationError(f"marginal covariances failed: {exc}") from exc
+    return {k: 0.5 * (c + c.T) for k, c in out.items()}
 
 
 def relative_covariances(
@@ -443,16 +463,24 @@ class IncrementalSmoother:
             raise EstimationError(f"{path}: checkpoint not found")
         try:
             with np.load(path, allow_pickle=False) as data:
+                for name in data.zip.namelist():  # sizes before decompression: no zip bomb
+                    if data.zip.getinfo(name).file_size > _CHECKPOINT_MEMBER_LIMIT:
+                        raise EstimationError(
+                            f"{path}: not a checkpoint: {name} declares "
+                            f"{data.zip.getinfo(name).file_size:,} bytes"
+                        )
                 version = int(data["version"])
                 count = int(data["events"])
                 keys = [int(k) for k in data["keys"]]
                 poses = np.asarray(data["poses"], dtype=float)
                 n_factors = int(data["factors"])
                 fingerprint = str(data["fingerprint"])
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             raise EstimationError(f"{path}: not a readable checkpoint ({exc})") from exc
         if version != _CHECKPOINT_VERSION:
             raise EstimationError(f"{path}: checkpoint version {version} is not supported")
+        if count < 0:
+            raise EstimationError(f"{path}: checkpoint holds {count} events")
         smoother = cls(settings, relinearize_threshold, relinearize_skip, kernel)
         for event in itertools.islice(events, count):
             smoother.builder.add(event)

@@ -34,6 +34,7 @@ import numpy as np
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
 from sensors.atomic import atomic_path
+from sensors.yamlio import regular_file
 
 __all__ = [
     "MAP_FORMAT",
@@ -116,8 +117,9 @@ def load_map(path: Path | str) -> OccupancyGrid:
     nearly empty blocks is refused instead of asking for gigabytes.
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise MapError(f"{path}: no such map file")
+    regular_file(path, MapError)  # a FIFO would block, a device fill memory
     try:
         with np.load(path, allow_pickle=False) as archive:
             return _read(path, archive)

@@ -26,6 +26,7 @@ from numba import njit
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
 from sensors.atomic import atomic_path
+from sensors.yamlio import read_file_bytes
 
 __all__ = [
     "BT_HEADER",
@@ -34,6 +35,7 @@ __all__ = [
     "encode_bt",
     "grid_from_bt",
     "read_bt",
+    "tree_stream",
     "write_bt",
 ]
 
@@ -45,6 +47,8 @@ KEY_OFFSET = 1 << (TREE_DEPTH - 1)
 MAX_EXPANDED_CELLS = 1 << 26
 _FREE, _OCCUPIED, _INNER = 1, 2, 3
 _MAX_HEADER_BYTES = 4096
+#: The largest ``.bt`` file read (2 bytes per inner node: half a billion nodes); geb079 is 209 kB.
+BT_LIMIT_BYTES = 2**30
 
 
 @dataclass(frozen=True)
@@ -229,6 +233,13 @@ def _parse_header(data: bytes, source: str) -> tuple[str, int, float, int]:
     return tree_id, size, res, pos
 
 
+def tree_stream(data: bytes, source: str = "<bytes>") -> tuple[str, float, bytes]:
+    """(tree id, resolution in m, the node stream) of ``.bt`` bytes: the stream without the
+    header is what an ``octomap_msgs/Octomap`` message carries in ``data`` (``binary: true``)."""
+    tree_id, _, resolution_m, offset = _parse_header(data, source)
+    return tree_id, resolution_m, data[offset:]
+
+
 def decode_bt(data: bytes, source: str = "<bytes>") -> BtTree:
     """Decode the bytes of a ``.bt`` file; MapError (naming ``source``) when malformed."""
     tree_id, size, res, offset = _parse_header(data, source)
@@ -255,13 +266,11 @@ def decode_bt(data: bytes, source: str = "<bytes>") -> BtTree:
 
 
 def read_bt(path: Path | str) -> BtTree:
-    """Read an OctoMap ``.bt`` file."""
+    """Read an OctoMap ``.bt`` file (a regular file of at most ``BT_LIMIT_BYTES``)."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise MapError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    return decode_bt(data, str(path))
+    if not path.exists():
+        raise MapError(f"{path}: cannot read: no such file")
+    return decode_bt(read_file_bytes(path, MapError, BT_LIMIT_BYTES), str(path))
 
 
 def _morton_keys(keys: np.ndarray) -> np.ndarray:

@@ -7,9 +7,16 @@ pixel p holds occupancy (255 − p) / 255 — black occupied, white free — and
 unknown cell (``map_saver``'s convention). The image's first row is the top of the map (largest
 y), so rows are flipped against ``Band`` (row 0 = smallest y).
 
-coopmap writes ``mode: scale`` so that ROS keeps the band's graded occupancy rather than
-thresholding it; values are quantised to 1/255, and a known cell that would land on 205 is
-written as 206 (a change of 1/255) so that it stays known.
+The pixels keep the band's graded occupancy, quantised to 1/255 (coopmap's reader reads the
+grades back); a known cell that would land on 205 is written as 206 (a change of 1/255) so that
+it stays known. The YAML says ``mode: trinary`` with thresholds on either side of the unknown
+pixel, so that ``map_server`` (ROS 1 and Nav2) loads 205 as unknown (−1) and every known pixel
+as free (0) or occupied (100): with ``negate: 0`` it reads occ = (255 − p) / 255 and gives
+100 when occ > ``occupied_thresh``, 0 when occ < ``free_thresh``, −1 otherwise. Pixel 206 is
+occ = 49/255 ≈ 0.192, 205 is 50/255 ≈ 0.196 and 204 is 51/255 = 0.2, so ``free_thresh`` 0.194
+and ``occupied_thresh`` 0.198 leave only 205 between them: a cell whose band layers are at
+least a fifth occupied loads as occupied. (``mode: scale`` would load 205 as a known,
+nearly free cell: map_server's scale mode marks unknown only through an alpha channel.)
 """
 
 from __future__ import annotations
@@ -27,30 +34,23 @@ from mapping.errors import MapError
 from sensors.atomic import atomic_path, write_text_atomic
 from sensors.yamlio import YAML_LIMIT_BYTES, parse_yaml, read_file_bytes, read_text_file
 
-__all__ = ["UNKNOWN_PIXEL", "read_band_pgm", "write_band_pgm"]
+__all__ = ["FREE_THRESH", "OCCUPIED_THRESH", "UNKNOWN_PIXEL", "read_band_pgm", "write_band_pgm"]
 
 UNKNOWN_PIXEL = 205
+#: map_server's thresholds (trinary mode) that load pixel 205 alone as unknown: see above.
+FREE_THRESH = 0.194
+OCCUPIED_THRESH = 0.198
 _DIGITS = re.compile(rb"\d+")
 _SPACE = (b" ", b"\t", b"\r", b"\n")
 #: An 8-bit map_server image of 32,000 × 32,000 cells; anything larger is not a map.
 PGM_LIMIT_BYTES = 2**30
 
 
-def write_band_pgm(
-    yaml_path: Path | str,
-    band: Band,
-    *,
-    occupied_thresh: float = 0.65,
-    free_thresh: float = 0.196,
-) -> tuple[Path, Path]:
+def write_band_pgm(yaml_path: Path | str, band: Band) -> tuple[Path, Path]:
     """Write ``band`` as ``<stem>.pgm`` beside ``yaml_path`` and the YAML; return both paths."""
     yaml_path = Path(yaml_path)
     if yaml_path.suffix.lower() not in (".yaml", ".yml"):
         raise MapError(f"{yaml_path}: the map description must be a .yaml file")
-    if not 0 <= free_thresh < occupied_thresh <= 1:
-        raise MapError(
-            f"need 0 ≤ free_thresh < occupied_thresh ≤ 1, got {free_thresh}, {occupied_thresh}"
-        )
     occupancy = np.clip(band.occupancy, 0.0, 1.0)
     if not np.all(np.isfinite(occupancy)):
         raise MapError("band occupancy holds non-finite values")
@@ -67,9 +67,9 @@ def write_band_pgm(
         "resolution": float(band.resolution_m),
         "origin": [float(band.lower_xy[0]), float(band.lower_xy[1]), 0.0],
         "negate": 0,
-        "occupied_thresh": float(occupied_thresh),
-        "free_thresh": float(free_thresh),
-        "mode": "scale",
+        "occupied_thresh": OCCUPIED_THRESH,
+        "free_thresh": FREE_THRESH,
+        "mode": "trinary",
     }
     write_text_atomic(yaml_path, yaml.safe_dump(description, sort_keys=False))
     return pgm_path, yaml_path
@@ -138,13 +138,16 @@ def read_band_pgm(yaml_path: Path | str) -> Band:
     if (
         not isinstance(origin, list)
         or len(origin) != 3
-        or not all(isinstance(v, int | float) and math.isfinite(v) for v in origin)
+        or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+            for v in origin
+        )
     ):
         raise MapError(f"{yaml_path}: origin must be [x, y, yaw], got {origin!r}")
     if abs(origin[2]) > 1e-12:
         raise MapError(f"{yaml_path}: a rotated map (origin yaw {origin[2]}) is not supported")
     negate = doc.get("negate", 0)
-    if negate not in (0, 1):
+    if isinstance(negate, bool) or negate not in (0, 1):  # YAML true is not map_server's 1
         raise MapError(f"{yaml_path}: negate must be 0 or 1, got {negate!r}")
     pixels = _read_pgm(yaml_path.parent / doc["image"])[::-1]
     # In place: one float64 array of the image's size and no temporaries of that size.

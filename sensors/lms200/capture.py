@@ -249,6 +249,7 @@ class DecodeSummary:
     implausible_reasons: dict[str, int] = field(default_factory=dict)
     bytes_skipped: int = 0
     truncated_bytes: int = 0
+    corrupt_bytes: int = 0  # records lost to damaged record headers (CaptureReader)
     kinds: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
@@ -349,6 +350,7 @@ def decode_stream(
         summary.checksum_failures = parser.stats.checksum_failures
         summary.bytes_skipped = parser.stats.bytes_skipped
         summary.truncated_bytes = reader.truncated_bytes
+        summary.corrupt_bytes = reader.corrupt_bytes
 
     def count(record: dict[str, Any]) -> dict[str, Any]:
         kind = record["kind"]

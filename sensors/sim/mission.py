@@ -108,7 +108,7 @@ class AutoSpec(_Model):
 
 class MissionSpec(_Model):
     world: str = Field(min_length=1)
-    seed: int = 0
+    seed: int = Field(0, ge=0)  # numpy's generators take non-negative seeds
     robots: list[RobotSpec] = Field(min_length=2)
     plan: Literal["auto"] | list[StepSpec]
     auto: AutoSpec = AutoSpec()

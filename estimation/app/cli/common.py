@@ -16,7 +16,15 @@ from rich.console import Console
 
 from estimation.app.config import Config, ConfigError, load_config
 
-__all__ = ["ConfigOption", "JsonOption", "cli_errors", "file_size", "make_console", "option_config"]
+__all__ = [
+    "ConfigOption",
+    "JsonOption",
+    "check_seed",
+    "cli_errors",
+    "file_size",
+    "make_console",
+    "option_config",
+]
 
 P = ParamSpec("P")
 R = TypeVar("R")
@@ -62,6 +70,12 @@ def cli_errors(command: Callable[P, R]) -> Callable[P, R]:
 def option_config(path: Path | None) -> Config:
     """The effective configuration: the defaults merged with the --config file, if any."""
     return load_config(path)
+
+
+def check_seed(seed: int) -> None:
+    """numpy's generators take non-negative seeds: a negative --seed is a known error."""
+    if seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {seed}")
 
 
 def make_console(stderr: bool = False) -> Console:

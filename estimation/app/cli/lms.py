@@ -11,6 +11,7 @@ import typer
 from estimation.app.cli.common import (
     ConfigOption,
     JsonOption,
+    check_seed,
     cli_errors,
     option_config,
 )
@@ -63,6 +64,11 @@ def lms_decode(
                 if counts["truncated_bytes"]
                 else ""
             )
+            + (
+                f", {counts['corrupt_bytes']:,} bytes of damaged records lost"
+                if counts["corrupt_bytes"]
+                else ""
+            )
             + "\n"
         )
 
@@ -97,6 +103,7 @@ def lms_emulate(
     from sensors.sim.world import load_world
 
     cfg = option_config(config)
+    check_seed(seed)
     model = load_world(resolve_builtin("worlds", world))
     if model.room_at(pose[:2]) is None:
         raise ConfigError(

@@ -10,6 +10,7 @@ import typer
 from estimation.app.cli.common import (
     ConfigOption,
     JsonOption,
+    check_seed,
     cli_errors,
     file_size,
     make_console,
@@ -104,6 +105,7 @@ def evaluate_localization(
     )
 
     cfg = option_config(config)
+    check_seed(seed)
     parts = tuple(only or ("sim", "geb079", "carmen"))
     unknown = sorted(set(parts) - {"sim", "geb079", "carmen"})
     if unknown:

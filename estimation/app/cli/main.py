@@ -12,7 +12,17 @@ import sys
 
 import typer
 
-from estimation.app.cli import bench, calibrate, dataset, lms, localize, mission, record, world
+from estimation.app.cli import (
+    bench,
+    calibrate,
+    dataset,
+    lms,
+    localize,
+    mission,
+    record,
+    ros,
+    world,
+)
 
 __all__ = ["app", "main"]
 
@@ -29,6 +39,7 @@ app.command()(mission.simulate)
 app.command()(mission.batch)
 app.command()(mission.isam)
 app.command()(mission.evaluate)
+app.command()(ros.export)
 app.command()(localize.localize)
 app.command("evaluate-localization")(localize.evaluate_localization)
 app.add_typer(world.world_app, name="world")

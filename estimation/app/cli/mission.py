@@ -14,6 +14,7 @@ from estimation.app.cli.common import (
     make_console,
     option_config,
 )
+from estimation.app.cli.ros import McapOption, print_export
 from estimation.app.config import ConfigError
 
 
@@ -114,12 +115,14 @@ def batch(
     dataset: Annotated[Path, typer.Argument(help="A dataset folder (coopmap simulate).")],
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
     config: ConfigOption = None,
+    mcap: McapOption = None,
 ) -> None:
     """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
     from estimation.app.pipeline import run_batch
     from sensors.yamlio import read_yaml_mapping
 
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    check_mcap(mcap)
     err = make_console(stderr=True)
     with err.status(f"processing {dataset}…", spinner="dots") as status:
         output = run_batch(dataset, out, overrides=overrides, progress=status.update)
@@ -134,7 +137,23 @@ def batch(
         f"{r['timings_s']['total']:.1f} s"
     )
     make_console().print(f"  wrote {output.out_dir}/")
+    export_mcap(output.out_dir, mcap, dataset)
     fail_unplaced(r, output.out_dir)
+
+
+def check_mcap(mcap: Path | None) -> None:
+    """Refuse a ``--mcap`` target before the work, not after it."""
+    if mcap is not None:
+        from estimation.app.ros.bag import check_mcap_replaceable
+
+        check_mcap_replaceable(mcap)
+
+
+def export_mcap(result: Path, mcap: Path | None, dataset: Path) -> None:
+    if mcap is not None:
+        from estimation.app.ros.export import export_result
+
+        print_export(export_result(result, mcap, dataset_dir=dataset))
 
 
 def fail_unplaced(report: dict[str, Any], out_dir: Path) -> None:
@@ -160,12 +179,14 @@ def isam(
         bool, typer.Option(help="Continue from the checkpoint of a cut-short run.")
     ] = False,
     config: ConfigOption = None,
+    mcap: McapOption = None,
 ) -> None:
     """Incremental iSAM2 over the same data, event by event, with checkpoints."""
     from estimation.app.pipeline import run_isam
     from sensors.yamlio import read_yaml_mapping
 
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    check_mcap(mcap)
     err = make_console(stderr=True)
     with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
         output = run_isam(dataset, out, overrides=overrides, resume=resume, progress=status.update)
@@ -178,6 +199,7 @@ def isam(
         f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
     )
     make_console().print(f"  wrote {output.out_dir}/")
+    export_mcap(output.out_dir, mcap, dataset)
     fail_unplaced(output.report, output.out_dir)
 
 

@@ -1,9 +1,10 @@
 """``coopmap evaluate``: a result against its dataset's ground truth → ``metrics.json``.
 
 * Trajectories: the pose of every (robot, index) in ``poses/<robot>.tum`` against the true pose
-  at the same stop (``ground_truth/<robot>.tum``). The gauge is the first robot's declared start,
-  so estimate and truth share the map frame: ATE is computed without alignment (RMS of position
-  and heading errors); RPE over consecutive poses of each robot.
+  (``ground_truth/<robot>.tum``) at its stamp, an instant of the standstill at that stop. The
+  gauge is the first robot's declared start, so estimate and truth share the map frame: ATE is
+  computed without alignment (RMS of position and heading errors); RPE over consecutive poses
+  of each robot.
 * Mutual localization: every mutual factor's relative pose against the true relative pose; the
   gate's rejections and GNC's outliers are counted.
 * Map: occupied cells (P > the grid's threshold) against the voxels the world's surfaces pass
@@ -25,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 from estimation.app.evaluation.metrics import ate, rpe
 from estimation.errors import EstimationError
 from mapping.formats.npz import load_map
-from sensors.atomic import write_text_atomic
+from sensors.atomic import output_kind, write_text_atomic
 from sensors.sim.scene import build_mesh
 from sensors.sim.truth import surface_voxels
 from sensors.sim.world import load_world
@@ -37,17 +38,15 @@ __all__ = ["evaluate", "map_quality"]
 
 def _truth_at(dataset: Path, robot: str, stamps: np.ndarray) -> np.ndarray:
     path = dataset / "ground_truth" / f"{robot}.tum"
-    if not path.is_file():
+    if not path.exists():  # a FIFO or a folder in its place is refused by read_tum
         raise EstimationError(f"{dataset}: no ground truth for robot {robot!r} ({path.name})")
     t, poses = read_tum(path)
-    # Robots stand still after each stop: half a second later is safely the stop's pose.
-    query = stamps + 0.5
     yaw = np.unwrap(poses[:, 2])
     return np.column_stack(
         [
-            np.interp(query, t, poses[:, 0]),
-            np.interp(query, t, poses[:, 1]),
-            np.interp(query, t, yaw),
+            np.interp(stamps, t, poses[:, 0]),
+            np.interp(stamps, t, poses[:, 1]),
+            np.interp(stamps, t, yaw),
         ]
     )
 
@@ -161,14 +160,28 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     if result.is_symlink():
         raise EstimationError(f"{result}: is a symbolic link; evaluate writes metrics.json only "
                               "into a result folder itself")  # fmt: skip
-    if not report_path.is_file():
+    if not report_path.exists():  # a FIFO or a folder in its place is refused when read
         raise EstimationError(f"{result}: no result here (report.json missing): run coopmap batch")
     report = read_report(report_path)
+    if output_kind(result) != "result":  # metrics.json must not land in a user's folder
+        raise EstimationError(
+            f"{result}: not a coopmap result (no .coopmap marker of a result); evaluate writes "
+            "metrics.json only into a folder that batch or isam wrote"
+        )
+    from estimation.app.dataset import load_dataset
+
+    robots = load_dataset(dataset).robots
+    if sorted(report["robots"]) != sorted(robots):
+        raise EstimationError(
+            f"{report_path}: robots {', '.join(sorted(report['robots']))} are not the dataset's "
+            f"({', '.join(robots)}): a result of another dataset?"
+        )
+    grid = load_map(result / "map.npz")  # a damaged map fails before the trajectories
     metrics: dict[str, Any] = {"robots": {}}
     all_est, all_true = [], []
     for robot in sorted(report["robots"]):
         tum = result / "poses" / f"{robot}.tum"
-        if not tum.is_file():
+        if not tum.exists():  # a FIFO or a folder in its place is refused by read_tum
             metrics["robots"][robot] = {"poses": 0}
             continue
         stamps, estimate = read_tum(tum)
@@ -195,7 +208,7 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         "gate": _gate_table(rows),
     }
     metrics["global_localization"] = _search_errors(dataset, report.get("global_localization", {}))
-    metrics["map"] = map_quality(load_map(result / "map.npz"), dataset / "world.yaml")
+    metrics["map"] = map_quality(grid, dataset / "world.yaml")
     metrics["timings_s"] = report["timings_s"]
     metrics["failures"] = {
         "missing_sweeps": len(report["missing_sweeps"]),
@@ -210,13 +223,20 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
 TRUE_M, TRUE_DEG = 0.1, 1.0
 
 
+def _pose_stamp(stops: dict[str, dict[int, float]], label: str) -> float:
+    """The stamp of a pose label of the report ("b4"); a pose the dataset lacks is an error."""
+    stamp = stops.get(label[0], {}).get(int(label[1:]))
+    if stamp is None:
+        raise EstimationError(f"report.json names pose {label}, which the dataset does not have")
+    return stamp
+
+
 def _relative_truth(
     dataset: Path, stops: dict[str, dict[int, float]], a: str, b: str
 ) -> np.ndarray:
-    """The true T_a_b of two pose labels ("a3", "b4") at their stop times."""
+    """The true T_a_b of two pose labels ("a3", "b4") at their pose stamps."""
     pa, pb = (
-        _truth_at(dataset, label[0], np.array([stops[label[0]][int(label[1:])]]))[0]
-        for label in (a, b)
+        _truth_at(dataset, label[0], np.array([_pose_stamp(stops, label)]))[0] for label in (a, b)
     )
     c, s = math.cos(pa[2]), math.sin(pa[2])
     dx, dy = pb[0] - pa[0], pb[1] - pa[1]
@@ -225,10 +245,9 @@ def _relative_truth(
 
 def _mutual_rows(dataset: Path, report: dict[str, Any]) -> list[tuple[float, float, bool]]:
     """(|error| m, |error| rad or NaN, accepted) of every mutual observation the gate saw."""
-    from estimation.app.dataset import load_dataset
+    from estimation.app.dataset import load_dataset, read_pose_stamps
 
-    data = load_dataset(dataset)
-    stops = {robot: data.stop_times(robot) for robot in data.robots}
+    stops = read_pose_stamps(load_dataset(dataset))
     rows = []
     for row in report.get("mutual_observations", []):
         measured = row.get("measurement")
@@ -258,13 +277,12 @@ def _gate_table(rows: list[tuple[float, float, bool]]) -> dict[str, int]:
 def _search_errors(dataset: Path, found: dict[str, Any]) -> dict[str, Any]:
     """Errors of every search against the truth: loop-closure searches give a station's pose in
     an older station's frame; relocalizations a robot's pose in the map frame."""
-    from estimation.app.dataset import load_dataset
+    from estimation.app.dataset import load_dataset, read_pose_stamps
 
-    data = load_dataset(dataset)
-    stops = {robot: data.stop_times(robot) for robot in data.robots}
+    stops = read_pose_stamps(load_dataset(dataset))
 
     def truth(label: str, at: float | None = None) -> np.ndarray:
-        t = stops[label[0]][int(label[1:])] if at is None else at
+        t = _pose_stamp(stops, label) if at is None else at
         return _truth_at(dataset, label[0], np.array([t]))[0]
 
     def error(pose: list[float], expected: np.ndarray) -> tuple[float, float]:

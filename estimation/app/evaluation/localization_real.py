@@ -78,6 +78,12 @@ def geb079_trials(
     resolution = columns["ceiling"][2]
     maps: dict[str, Band] = {}
     for name, (centres, occupied, res) in columns.items():
+        if not len(centres):
+            low, high = heights[name]
+            raise EstimationError(
+                f"{path}: no known voxel between {low} and {high} m (the {name} band): not a "
+                "building's map"
+            )
         lower = np.floor(centres.min(axis=0) / res) * res
         upper = np.ceil(centres.max(axis=0) / res) * res + res
         shape = (round((upper[1] - lower[1]) / res), round((upper[0] - lower[0]) / res))
@@ -87,6 +93,8 @@ def geb079_trials(
     fx, fy = floor.cell_centers()
     empty = floor.known & (floor.occupancy == 0)
     candidates = np.column_stack([fx[empty], fy[empty]])
+    if not len(candidates):
+        raise EstimationError(f"{path}: no free cell in the floor band to place a robot on")
     params = search_params(config.search)
     radius = 8.0
     half = math.ceil(radius / resolution)

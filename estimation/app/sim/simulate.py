@@ -95,6 +95,8 @@ def run_simulation(
     config = mission_config(mission, overrides, str(mission_path))
     world = load_world(resolve_mission_world(mission, mission_path))
     seed = mission.seed if seed is None else seed
+    if seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {seed}")
     space = robot_free_space(world, config)
 
     if mission.plan == "auto":

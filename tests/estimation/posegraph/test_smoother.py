@@ -15,7 +15,12 @@ from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize, Move, Start
 from estimation.posegraph.graph import GraphBuilder, GraphSettings
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.smoother import IncrementalSmoother, factor_fingerprint, optimize_batch
+from estimation.posegraph.smoother import (
+    IncrementalSmoother,
+    factor_fingerprint,
+    marginal_covariances,
+    optimize_batch,
+)
 from estimation.posegraph.synthetic import leapfrog, search_pdf
 from sensors.geometry import se2
 from tests.paths import REPO
@@ -118,6 +123,20 @@ def test_isam2_marginals_match_batch(mission) -> None:  # type: ignore[no-untype
         np.testing.assert_allclose(
             smoother.marginal_covariance(key), batch.covariances[key], rtol=0.02, atol=1e-6
         )
+
+
+def test_marginals_at_the_optimum_equal_the_batch_solvers(mission) -> None:  # type: ignore[no-untyped-def]
+    builder = build(mission.events)
+    batch = optimize_batch(builder.factors, builder.initial_values(), robust="none", marginals=True)
+    assert batch.covariances is not None
+    ours = marginal_covariances(builder.factors, batch.estimate)
+    assert sorted(ours) == sorted(batch.covariances)
+    for key, covariance in ours.items():
+        np.testing.assert_allclose(covariance, batch.covariances[key], rtol=1e-6, atol=1e-15)
+        np.testing.assert_array_equal(covariance, covariance.T)
+    # A pose outside the estimate drops its factors instead of failing.
+    gauge = min(batch.estimate)
+    assert list(marginal_covariances(builder.factors, {gauge: batch.estimate[gauge]})) == [gauge]
 
 
 def test_gnc_with_10_percent_gross_outliers_on_2000_poses() -> None:

@@ -12,6 +12,7 @@ from mapping.band import Band
 from mapping.errors import MapError
 from mapping.formats import pgm
 from mapping.formats.pgm import UNKNOWN_PIXEL, read_band_pgm, write_band_pgm
+from tests.mapping.formats.map_server import load_map_server
 
 
 def sample_band() -> Band:
@@ -45,9 +46,9 @@ def test_files_follow_map_server(tmp_path: Path) -> None:
         "resolution": 0.05,
         "origin": [-1.25, 3.5, 0.0],
         "negate": 0,
-        "occupied_thresh": 0.65,
-        "free_thresh": 0.196,
-        "mode": "scale",
+        "occupied_thresh": 0.198,
+        "free_thresh": 0.194,
+        "mode": "trinary",
     }
     data = pgm_path.read_bytes()
     assert data.startswith(b"P5\n")
@@ -116,8 +117,33 @@ def test_bad_descriptions_are_clear_errors(tmp_path: Path) -> None:
         read_band_pgm(tmp_path / "absent.yaml")
     with pytest.raises(MapError, match=r"must be a \.yaml file"):
         write_band_pgm(tmp_path / "map.png", sample_band())
-    with pytest.raises(MapError, match="free_thresh < occupied_thresh"):
-        write_band_pgm(tmp_path / "map.yaml", sample_band(), free_thresh=0.7)
+
+
+def test_map_server_loads_unknown_free_and_occupied(tmp_path: Path) -> None:
+    band = sample_band()
+    _, yaml_path = write_band_pgm(tmp_path / "ceiling.yaml", band)
+    cells, _ = load_map_server(yaml_path)
+    assert cells.shape == band.shape
+    # Every known pixel lands on one side of the unknown pixel's occupancy (50/255).
+    expected = np.where(band.occupancy > 50.5 / 255, 100, 0)
+    np.testing.assert_array_equal(cells, np.where(band.known, expected, -1))
+    assert cells[0, :4].tolist() == [0, 100, 100, 0]  # 50/255 is written as 206: free
+    assert set(np.unique(cells).tolist()) == {-1, 0, 100}
+
+
+def test_the_loader_follows_the_scale_and_negate_rules(tmp_path: Path) -> None:
+    band = sample_band()
+    _, yaml_path = write_band_pgm(tmp_path / "ceiling.yaml", band)
+    doc = yaml.safe_load(yaml_path.read_text())
+    # What the file said before: scale mode reads 205 as a known, nearly free cell.
+    (tmp_path / "scale.yaml").write_text(yaml.safe_dump(
+        {**doc, "mode": "scale", "occupied_thresh": 0.65, "free_thresh": 0.196}))  # fmt: skip
+    scale, _ = load_map_server(tmp_path / "scale.yaml")
+    assert scale[~band.known].tolist() == [0] * int((~band.known).sum())
+    assert scale[0, 2] == round((1 / 3 - 0.196) / (0.65 - 0.196) * 100)
+    (tmp_path / "negate.yaml").write_text(yaml.safe_dump({**doc, "negate": 1}))
+    negated, _ = load_map_server(tmp_path / "negate.yaml")
+    assert negated[0, :2].tolist() == [100, 0]  # white reads as occupied
 
 
 def test_a_failed_write_keeps_the_old_files(

@@ -134,7 +134,9 @@ def test_a_replayed_mission_recorded_and_merged_gives_the_simulated_poses(
     for name in "ab":
         t_sim, p_sim = read_tum(simulated / "result" / "poses" / f"{name}.tum")
         t_rec, p_rec = read_tum(merged / "result" / "poses" / f"{name}.tum")
-        assert t_rec == pytest.approx(t_sim, abs=1e-6)
+        # Both are stamped at an odometry sample 0.5-0.6 s into each standstill: the merged
+        # odometry's samples sit on the recorder's clock, within one sample of the simulated.
+        assert t_rec == pytest.approx(t_sim, abs=0.1 + 1e-6)
         assert np.abs(p_rec[:, :2] - p_sim[:, :2]).max() < 1e-3
         assert np.abs(p_rec[:, 2] - p_sim[:, 2]).max() < 1e-4
     assert len(read_tum(merged / "result" / "poses" / "b.tum")[0]) == 2

@@ -1,0 +1,144 @@
+"""The result folder as other tools read it: map_server, evo, OctoMap; and the covariances."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimation.app.config import load_config
+from estimation.app.evaluation.evaluate import evaluate
+from estimation.app.pipeline import run_batch
+from estimation.app.sim.simulate import run_simulation
+from mapping.band import extract_band
+from mapping.formats.npz import load_map
+from mapping.formats.pgm import UNKNOWN_PIXEL, read_band_pgm
+from sensors.trajio import read_tum
+from tests.mapping.formats.map_server import load_map_server, read_pgm_pixels
+from tests.paths import REPO
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("results") / "essex"
+    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+    run_batch(out)
+    return out
+
+
+def test_map_server_loads_the_ceiling_unknown_free_and_occupied(dataset: Path) -> None:
+    result = dataset / "result"
+    cells, doc = load_map_server(result / "ceiling.yaml")
+    assert doc["mode"] == "trinary"
+    pixels = read_pgm_pixels(result / "ceiling.pgm")[::-1]
+    config = load_config(result / "config.yaml")
+    band = extract_band(load_map(result / "map.npz"), config.bands.ceiling.min_m,
+                        config.bands.ceiling.max_m,
+                        free_min_observed=config.bands.free_min_observed)  # fmt: skip
+    assert cells.shape == band.shape
+    np.testing.assert_array_equal(cells == -1, ~band.known)
+    np.testing.assert_array_equal(pixels == UNKNOWN_PIXEL, ~band.known)
+    # Known cells: occupied from a fifth of the band's layers up, free below.
+    share = band.occupancy[band.known]
+    np.testing.assert_array_equal(cells[band.known], np.where(share > 50.5 / 255, 100, 0))
+    assert set(np.unique(cells).tolist()) == {-1, 0, 100}
+    assert 0.05 < (cells == 100).sum() / band.known.sum() < 0.5
+    assert (cells == 0).sum() > 5000
+
+
+def test_coopmaps_reader_still_reads_the_graded_band(dataset: Path) -> None:
+    result = dataset / "result"
+    back = read_band_pgm(result / "ceiling.yaml")
+    config = load_config(result / "config.yaml")
+    band = extract_band(load_map(result / "map.npz"), config.bands.ceiling.min_m,
+                        config.bands.ceiling.max_m,
+                        free_min_observed=config.bands.free_min_observed)  # fmt: skip
+    np.testing.assert_array_equal(back.known, band.known)
+    np.testing.assert_allclose(back.occupancy, band.occupancy, atol=1 / 255 + 1e-12)
+    np.testing.assert_allclose(back.lower_xy, band.lower_xy)
+    assert len(np.unique(back.occupancy[back.known])) > 3  # grades, not three levels
+
+
+def test_evo_associates_every_pose_and_matches_coopmaps_ate(dataset: Path) -> None:
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    ours = evaluate(dataset)
+    for robot in ("a", "b"):
+        truth = file_interface.read_tum_trajectory_file(
+            str(dataset / "ground_truth" / f"{robot}.tum")
+        )
+        estimate = file_interface.read_tum_trajectory_file(
+            str(dataset / "result" / "poses" / f"{robot}.tum")
+        )
+        truth, matched = sync.associate_trajectories(truth, estimate)
+        assert matched.num_poses == estimate.num_poses == ours["robots"][robot]["poses"]
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data((truth, matched))  # no alignment: the gauge fixes the map frame
+        rmse = ape.get_statistic(metrics.StatisticsType.rmse)
+        assert rmse == pytest.approx(ours["robots"][robot]["ate_m"], abs=1e-3)
+        assert 1e-4 < rmse < 0.05
+
+
+def test_pose_stamps_lie_on_the_odometry_grid_inside_the_standstill(dataset: Path) -> None:
+    events = [json.loads(line) for line in (dataset / "events.jsonl").read_text().splitlines()]
+    for robot in ("a", "b"):
+        stamps, _ = read_tum(dataset / "result" / "poses" / f"{robot}.tum")
+        odometry, _ = read_tum(dataset / "robots" / robot / "odometry.tum")
+        arrivals = [0.0] + [
+            e["t_s"] for e in events if e["event"] == "move" and e["robot"] == robot
+        ]
+        departures = [e["start_s"] for e in events if e["event"] == "move" and e["robot"] == robot]
+        assert len(stamps) == len(arrivals)
+        assert np.isin(stamps, odometry).all()
+        waited = stamps - np.array(arrivals)
+        assert (waited >= 0.5 - 1e-6).all()
+        assert (waited < 0.6 + 1e-6).all()
+        assert (stamps[:-1] < np.array(departures)).all()
+
+
+def test_map_bt_opens_in_octomap_with_the_occupied_cells_of_the_map(dataset: Path) -> None:
+    import pyoctomap
+
+    grid = load_map(dataset / "result" / "map.npz")
+    tree = pyoctomap.OcTree(0.5)
+    assert tree.readBinary(str(dataset / "result" / "map.bt"))
+    res = tree.getResolution()
+    assert res == pytest.approx(grid.resolution_m)
+    occupied: set[tuple[int, int, int]] = set()
+    free = 0
+    for leaf in tree.begin_leafs():
+        edge = round(leaf.getSize() / res)
+        corner = np.rint((np.array(leaf.getCoordinate()) - leaf.getSize() / 2) / res).astype(int)
+        if not tree.isNodeOccupied(leaf.current_node):
+            free += edge**3
+            continue
+        for offset in np.ndindex(edge, edge, edge):
+            occupied.add(tuple(int(v) for v in corner + offset))
+    expected, _ = grid.occupied()
+    assert occupied == {tuple(c) for c in expected.tolist()}
+    assert free + len(occupied) == grid.known_count()
+
+
+def test_covariances_are_the_marginals_of_every_pose(dataset: Path) -> None:
+    result = dataset / "result"
+    document = json.loads((result / "covariances.json").read_text())
+    assert (document["format"], document["version"]) == ("coopmap.covariances", 1)
+    config = load_config(result / "config.yaml")
+    prior = np.array([config.graph.prior_sigma_m] * 2 + [config.graph.prior_sigma_rad]) ** 2
+    for robot, entry in document["robots"].items():
+        stamps, _ = read_tum(result / "poses" / f"{robot}.tum")
+        covariances = np.array(entry["covariances"])
+        assert covariances.shape == (len(stamps), 3, 3)
+        assert entry["indices"] == list(range(len(stamps)))
+        np.testing.assert_allclose(covariances, covariances.transpose(0, 2, 1), atol=1e-15)
+        assert (np.linalg.eigvalsh(covariances) > 0).all()
+    gauge = np.diag(np.array(document["robots"]["a"]["covariances"][0]))
+    # The gauge is pinned by its prior: other factors can only tighten it a little.
+    assert ((gauge <= prior * (1 + 1e-9)) & (gauge > 0.5 * prior)).all()
+    later = np.array(document["robots"]["b"]["covariances"])
+    assert (later[:, 0, 0] > 10 * gauge[0]).all()
+    assert math.sqrt(later[:, 0, 0].max()) < 0.1
