@@ -255,6 +255,14 @@ def evaluate(
             )
         elif entry:
             console.print(f"{name}: none of {entry['searches']} searches used")
+    for band in ("ceiling", "floor"):
+        entry = found.get(f"relocalization_{band}")
+        if entry:
+            console.print(
+                f"relocalization ({band} band): {entry['success']} of {entry['searches']} within "
+                f"10 cm and 1°, median error {entry['median_m'] * 100:.1f} cm / "
+                f"{entry['median_deg']:.2f}°"
+            )
     validation = found.get("validation")
     if validation:
         console.print(

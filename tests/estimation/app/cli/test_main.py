@@ -213,3 +213,28 @@ def test_a_robot_left_without_poses_fails_the_run_in_one_line(
     assert capsys.readouterr().err.startswith("coopmap: error: robot c has no pose")
     fail_unplaced({"robots": {"a": {"poses": 3}}}, tmp_path)
     assert capsys.readouterr().err == ""
+
+
+def test_evaluate_prints_relocalization_after_the_changes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """The relocalization verdicts were only in metrics.json; evaluate prints them per band."""
+    metrics = {
+        "robots": {"a": {"poses": 3, "ate_m": 0.01, "ate_deg": 0.1}},
+        "mutual": {"events": 2, "rejected": 0, "median_m": None},
+        "map": {"resolution_m": 0.1, "precision": 0.99, "recall": 0.9, "occupied": 100},
+        "global_localization": {
+            "relocalization_ceiling": {"searches": 2, "success": 2, "median_m": 0.033,
+                                       "median_deg": 0.38},
+            "relocalization_floor": {"searches": 2, "success": 1, "median_m": 0.107,
+                                     "median_deg": 0.25},
+        },
+    }  # fmt: skip
+    monkeypatch.setattr("estimation.app.evaluation.evaluate.evaluate", lambda *_: metrics)
+    code, out, err = run("evaluate", str(tmp_path))
+    assert code == 0, err
+    lines = out.splitlines()
+    assert "relocalization (ceiling band): 2 of 2 within 10 cm and 1°, median error 3.3 cm / " \
+        "0.38°" in lines  # fmt: skip
+    assert "relocalization (floor band): 1 of 2 within 10 cm and 1°, median error 10.7 cm / " \
+        "0.25°" in lines  # fmt: skip
