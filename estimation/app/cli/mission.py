@@ -270,6 +270,12 @@ def evaluate(
             f"{len(validation['outside'])} outside their region, "
             f"{len(validation['flagged'])} factors flagged"
         )
+    coverage = metrics.get("coverage")
+    if coverage:
+        console.print(
+            f"floor coverage: {coverage['coverage']:.1%} of the reachable floor known; rooms "
+            f"entered: {len(coverage['rooms_entered'])} of {len(coverage['rooms'])}"
+        )
     console.print(
         f"map at {quality['resolution_m']:g} m: precision {quality['precision']:.3f}, "
         f"recall {quality['recall']:.3f} ({quality['occupied']:,} occupied cells)"

@@ -170,7 +170,8 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         )
     from estimation.app.dataset import load_dataset
 
-    robots = load_dataset(dataset).robots
+    data = load_dataset(dataset)
+    robots = data.robots
     if sorted(report["robots"]) != sorted(robots):
         raise EstimationError(
             f"{report_path}: robots {', '.join(sorted(report['robots']))} are not the dataset's "
@@ -209,6 +210,7 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     }
     metrics["global_localization"] = _search_errors(dataset, report.get("global_localization", {}))
     metrics["map"] = map_quality(grid, dataset / "world.yaml")
+    metrics["coverage"] = _coverage(dataset, data, grid)
     metrics["timings_s"] = report["timings_s"]
     metrics["failures"] = {
         "missing_sweeps": len(report["missing_sweeps"]),
@@ -217,6 +219,19 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     }
     write_text_atomic(result / "metrics.json", json.dumps(metrics, indent=1) + "\n")
     return metrics
+
+
+def _coverage(dataset: Path, data: Any, grid: Any) -> dict[str, Any]:
+    """Floor coverage and rooms entered (``coverage.floor_coverage``) on the true world."""
+    from estimation.app.evaluation.coverage import floor_coverage
+    from estimation.app.sim.simulate import robot_free_space
+
+    world = load_world(dataset / "world.yaml")
+    truth = {r: read_tum(dataset / "ground_truth" / f"{r}.tum")[1][:, :2] for r in data.robots}
+    return floor_coverage(
+        world, robot_free_space(world, data.config), grid,
+        [data.starts[r][:2] for r in data.robots], truth, data.config.robot.body_height_m,
+    )  # fmt: skip
 
 
 #: A mutual observation is "true" when its relative pose is this close to the truth.

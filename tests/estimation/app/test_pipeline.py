@@ -113,6 +113,9 @@ def test_evaluation_meets_the_targets(dataset: Path, result: Path) -> None:
     assert metrics["mutual"]["median_m"] < 0.02
     assert metrics["map"]["precision"] >= 0.9
     assert metrics["map"]["recall"] >= 0.9
+    coverage = metrics["coverage"]  # two leapfrog steps in one lab: part of its floor
+    assert coverage["rooms"] == coverage["rooms_entered"] == ["lab"]
+    assert 0.5 < coverage["coverage"] < 0.8
     assert json.loads((result / "metrics.json").read_text()) == json.loads(json.dumps(metrics))
 
 
