@@ -17,6 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -27,7 +28,7 @@ from sensors.sim.planner import FreeSpace
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import World
 
-__all__ = ["CoverageModel", "plan_leapfrog"]
+__all__ = ["CoverageModel", "mutual_dwells", "plan_leapfrog"]
 
 _WEDGE_RAD = math.radians(50.0)
 _VIEW_RANGE_M = 7.0
@@ -150,6 +151,29 @@ class _Geometry:
             and self.bearing_ok(mapper, reference)
             and self.beacons_see_each_other(reference, mapper)
         )
+
+
+def mutual_dwells(
+    events: list[dict[str, Any]],
+    stops: dict[str, list[tuple[float, np.ndarray]]],
+    config: Config,
+    scene: RaycastScene,
+) -> int:
+    """How many dwells of a timeline let their reference and mapper see each other's beacon:
+    within the beacon's range, inside the scanner's field of view and outside its blind wedge,
+    with a clear 3D line between scanner and beacon both ways."""
+    geometry = _Geometry(config, scene)
+    geometry.min_bearing = config.beacon.blind_wedge_rad / 2
+    geometry.max_bearing = math.radians(config.scanner.field_of_view_deg / 2)
+    count = 0
+    for event in events:
+        reference, mapper = event.get("reference"), event.get("mapper")
+        if event["event"] != "dwell" or reference is None or mapper is None:
+            continue
+        a = stops[reference][event["poses"][reference]][1]
+        c = stops[mapper][event["poses"][mapper]][1]
+        count += geometry.mutual(a, c, (0.0, config.beacon.max_range_m))
+    return count
 
 
 def _mapper_candidates(

@@ -118,6 +118,15 @@ def run_simulation(
     )
     segments = config.simulation.cylinder_segments
     scene = RaycastScene(build_mesh(world, cylinder_segments=segments))
+    from estimation.app.sim.planning import mutual_dwells
+
+    seen = mutual_dwells(timeline.events, timeline.stops, config, scene)
+    if len(mission.robots) > 1 and seen == 0:
+        raise ConfigError(
+            f"{mission_path}: in no dwell of the plan can the reference and the mapper see each "
+            "other's beacon (range, field of view, blind wedge, line of sight): the dataset "
+            "would give no mutual observation"
+        )
     changed_world, changes = world, list[ObjectChange]()
     if mission.changes is not None:
         c = mission.changes

@@ -31,7 +31,7 @@ ROOM = (
 )
 MISSION = (
     "world: world.yaml\nseed: 1\nrobots:\n  - {name: a, start: [1, 1, 0]}\n"
-    "  - {name: b, start: [2, 2, 90]}\nplan:\n  - {reference: a, mapper: b, scans: [[3, 2, 0]]}\n"
+    "  - {name: b, start: [2, 2, 90]}\nplan:\n  - {reference: a, mapper: b, scans: [[3, 2, 180]]}\n"
 )
 #: Each command with an output folder, the kind it writes, and its line with OUT for --out.
 COMMANDS: dict[str, tuple[str, tuple[str, ...]]] = {

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from estimation.app.cli.main import app
-from estimation.app.config import Config
+from estimation.app.config import Config, ConfigError
 from estimation.app.sim.planning import _Geometry
 from estimation.app.sim.simulate import robot_free_space, run_simulation
 from sensors.atomic import replace_directory
@@ -260,3 +260,21 @@ def test_auto_plan_reports_a_cramped_start() -> None:
         plan_leapfrog(
             spec, room(), robot_free_space(room(), Config()), Config(), np.random.default_rng(0)
         )
+
+
+def test_a_plan_in_which_no_beacon_can_be_seen_is_refused(tmp_path: Path) -> None:
+    """Robots that turn their backs on each other in every dwell: no mutual observation."""
+    mission = tmp_path / "backs.yaml"
+    mission.write_text(
+        "world: essex_lab\nseed: 0\nrobots:\n"
+        "  - {name: a, start: [2.0, 3.5, 200]}\n  - {name: b, start: [3.5, 5.75, 40]}\n"
+        "plan:\n  - {reference: a, mapper: b, scans: [[3.6, 5.7, 45]]}\n"
+    )
+    with pytest.raises(ConfigError, match=r"backs\.yaml: in no dwell of the plan can the "
+                       r"reference and the mapper see each other's beacon"):  # fmt: skip
+        run_simulation(mission, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+    # Facing each other, the same plan is flown.
+    mission.write_text(mission.read_text().replace("200]", "20]").replace("40]", "220]"))
+    result = run_simulation(mission, tmp_path / "out")
+    assert result.steps == 1
