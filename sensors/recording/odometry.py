@@ -18,6 +18,7 @@ termios, 8N1; default 115200 Bd).
 
 from __future__ import annotations
 
+import abc
 import contextlib
 import math
 import os
@@ -65,19 +66,22 @@ def parse_line(line: str) -> tuple[float, float, float, float] | None:
     return values[0], values[1], values[2], values[3]
 
 
-class OdometrySource:
+class OdometrySource(abc.ABC):
     """A byte stream of odometry lines: ``read(timeout_s)`` returns b"" when nothing came."""
 
     name = ""
 
+    @abc.abstractmethod
     def connect(self) -> None:
-        raise NotImplementedError
+        """Open the stream; RecordingError naming the endpoint when it cannot."""
 
+    @abc.abstractmethod
     def read(self, timeout_s: float) -> bytes:
-        raise NotImplementedError
+        """What arrived within ``timeout_s`` (b"" if nothing); RecordingError when it closed."""
 
+    @abc.abstractmethod
     def close(self) -> None:
-        raise NotImplementedError
+        """Release the stream (safe to call twice)."""
 
 
 class TcpSource(OdometrySource):

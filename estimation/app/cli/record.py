@@ -134,7 +134,7 @@ def clock_serve(
             while time.monotonic() < deadline:
                 time.sleep(0.05)
         except KeyboardInterrupt:
-            pass
+            typer.echo("coopmap: interrupted: stopping the clock server", err=True)
     typer.echo(f"coopmap: answered {server.answered} exchanges, ignored {server.ignored}", err=True)
 
 

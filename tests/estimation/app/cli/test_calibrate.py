@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from estimation.app.cli.main import app
 from estimation.app.config import load_config
 from tests.estimation.app.calibration_data import (
     START,
@@ -18,20 +15,7 @@ from tests.estimation.app.calibration_data import (
     simulate_calibration_dataset,
     write_start_config,
 )
-
-
-def run(*args: str | Path) -> tuple[int, str, str]:
-    result = CliRunner().invoke(app, [str(a) for a in args])
-    return result.exit_code, result.stdout, result.stderr
-
-
-def assert_one_line_error(code: int, stdout: str, stderr: str, pattern: str) -> None:
-    assert code == 2
-    assert "Traceback" not in stdout + stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("coopmap: error: ")
-    assert re.search(pattern, lines[0]), lines[0]
+from tests.estimation.app.cli.clirun import assert_one_line_error, run
 
 
 @pytest.fixture(scope="module")

@@ -10,29 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from estimation.app.cli.main import app
 from estimation.app.config import Config
+from tests.estimation.app.cli.clirun import assert_one_line_error, run
 
 BUILTIN = ["essex_lab", "office_loop", "cluttered_hall"]
 COOPMAP = Path(sys.executable).parent / "coopmap"
-
-
-def run(*args: str) -> tuple[int, str, str]:
-    result = CliRunner().invoke(app, list(args))
-    return result.exit_code, result.stdout, result.stderr
-
-
-def assert_one_line_error(code: int, stdout: str, stderr: str, pattern: str) -> None:
-    assert code == 2
-    assert "Traceback" not in stdout + stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("coopmap: error: ")
-    import re
-
-    assert re.search(pattern, lines[0]), lines[0]
 
 
 def read_png(path: Path) -> np.ndarray:

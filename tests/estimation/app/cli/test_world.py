@@ -10,26 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from estimation.app.cli.main import app
 from sensors.sim.generate import HEADER, generate_building
 from sensors.sim.planner import free_space
 from sensors.sim.world import load_world
-
-
-def run(*args: str) -> tuple[int, str, str]:
-    result = CliRunner().invoke(app, list(args))
-    return result.exit_code, result.stdout, result.stderr
-
-
-def assert_one_line_error(code: int, stdout: str, stderr: str, pattern: str) -> None:
-    assert code == 2
-    assert "Traceback" not in stdout + stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("coopmap: error: ")
-    assert re.search(pattern, lines[0]), lines[0]
+from tests.estimation.app.cli.clirun import assert_one_line_error, run
 
 
 def test_generate_writes_the_building_of_the_seed(tmp_path: Path) -> None:
