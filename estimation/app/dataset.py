@@ -34,14 +34,16 @@ from sensors.lms200.protocol.scan import Scan, decode_scan
 from sensors.lms200.protocol.stream import StreamParser, Telegram
 from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
-from sensors.scan3d.mirror import Scan3D, assemble_sweeps, estimate_mirror, scan_times
+from sensors.scan3d.mirror import Scan3D, ScanClock, assemble_sweeps, estimate_mirror
 from sensors.trajio import read_tum
 from sensors.yamlio import merge_mappings, read_text_file, read_yaml_mapping
 
 __all__ = [
     "Counts",
     "Dataset",
+    "EventMaker",
     "EventStream",
+    "LmsDecoder",
     "RobotStream",
     "Sweep",
     "build_events",
@@ -260,6 +262,67 @@ class RobotStream:
         return sum(self.implausible.values())
 
 
+class LmsDecoder:
+    """One robot's LMS byte stream decoded as it arrives: measured-value telegrams become scans
+    with measurement times (:class:`~sensors.scan3d.mirror.ScanClock`); ``stream()`` is the
+    :class:`RobotStream` of everything so far, the same as :func:`decode_robot` of the same
+    bytes."""
+
+    def __init__(self, measuring_mode: int, limits: ScanLimits | None = None,
+                 header: dict[str, Any] | None = None) -> None:  # fmt: skip
+        self.measuring_mode = measuring_mode
+        self.parser = StreamParser()
+        self.check: ScanCheck | None = None
+        if limits is not None:
+            baud = (header or {}).get("baud_rate")
+            self.check = ScanCheck(
+                replace(limits, baud_rate=int(baud)) if baud in BAUD_RATES else limits
+            )
+        self.scans: list[Scan] = []
+        self.clock = ScanClock()
+        self.decoded = self.undecodable = 0
+        self.last_stamp: float | None = None
+
+    def feed(self, stamp: float | None, chunk: bytes) -> int:
+        """Parse one received chunk; returns how many scans it completed."""
+        before = len(self.scans)
+        self.last_stamp = stamp
+        for event in self.parser.feed(chunk, stamp):
+            if isinstance(event, Telegram) and event.code == 0xB0:
+                try:
+                    scan = decode_scan(event, self.measuring_mode)
+                except ProtocolError:
+                    self.undecodable += 1
+                    continue
+                self.decoded += 1
+                if scan.stamp_s is not None and (
+                    self.check is None or self.check.check(scan) is None
+                ):
+                    self.scans.append(scan)
+                    self.clock.add(scan)
+        return len(self.scans) - before
+
+    def close(self) -> None:
+        self.parser.close(self.last_stamp)
+
+    @property
+    def implausible(self) -> dict[str, int]:
+        return dict(self.check.rejected) if self.check is not None else {}
+
+    def stream(self, truncated_bytes: int = 0, corrupt_bytes: int = 0) -> RobotStream:
+        return RobotStream(
+            scans=self.scans,
+            times_s=self.clock.times(),
+            telegrams=self.parser.stats.telegrams,
+            undecodable=self.undecodable,
+            checksum_failures=self.parser.stats.checksum_failures,
+            bytes_skipped=self.parser.stats.bytes_skipped,
+            truncated_bytes=truncated_bytes,
+            corrupt_bytes=corrupt_bytes,
+            implausible=self.implausible,
+        )
+
+
 def decode_robot(
     capture: Path, measuring_mode: int, limits: ScanLimits | None = None
 ) -> RobotStream:
@@ -270,46 +333,20 @@ def decode_robot(
     capture's header, when it has one, sets the telegram interval.
     """
     reader = CaptureReader(capture)
-    parser = StreamParser()
-    check: ScanCheck | None = None
-    if limits is not None:
-        baud = (reader.header or {}).get("baud_rate")
-        check = ScanCheck(replace(limits, baud_rate=baud) if baud in BAUD_RATES else limits)
-    scans: list[Scan] = []
-    decoded = undecodable = 0
-    stamp: float | None = None
+    decoder = LmsDecoder(measuring_mode, limits, reader.header)
     for stamp, chunk in reader.chunks():
-        for event in parser.feed(chunk, stamp):
-            if isinstance(event, Telegram) and event.code == 0xB0:
-                try:
-                    scan = decode_scan(event, measuring_mode)
-                except ProtocolError:
-                    undecodable += 1
-                    continue
-                decoded += 1
-                if scan.stamp_s is not None and (check is None or check.check(scan) is None):
-                    scans.append(scan)
-    parser.close(stamp)
-    if not decoded:
+        decoder.feed(stamp, chunk)
+    decoder.close()
+    if not decoder.decoded:
         raise SensorError(f"{capture}: no measured values in the capture")
-    implausible = dict(check.rejected) if check is not None else {}
-    if not scans and implausible:
+    implausible = decoder.implausible
+    if not decoder.scans and implausible:
         raise SensorError(
-            f"{capture}: all {decoded} scans are implausible for the configured scanner "
+            f"{capture}: all {decoder.decoded} scans are implausible for the configured scanner "
             f"({', '.join(f'{n} {why}' for why, n in sorted(implausible.items()))}): check "
             "scanner.field_of_view_deg, angular_resolution_deg, unit and serial.baud_rate"
         )
-    return RobotStream(
-        scans=scans,
-        times_s=scan_times(scans),
-        telegrams=parser.stats.telegrams,
-        undecodable=undecodable,
-        checksum_failures=parser.stats.checksum_failures,
-        bytes_skipped=parser.stats.bytes_skipped,
-        truncated_bytes=reader.truncated_bytes,
-        corrupt_bytes=reader.corrupt_bytes,
-        implausible=implausible,
-    )
+    return decoder.stream(reader.truncated_bytes, reader.corrupt_bytes)
 
 
 def sweep_in(
@@ -400,87 +437,119 @@ class EventStream:
     builder: GraphBuilder
 
 
+class EventMaker:
+    """The estimator's event stream of a mission, made one dataset event (an ``events.jsonl``
+    entry) at a time, as :func:`build_events` reads a recorded mission and the mission loop
+    runs a live one. A builder consumes the events as they are made, so that each observation
+    can be matched to the beacon predicted by the estimate so far.
+
+    ``odometry`` maps each robot to its odometry so far (stamps, poses); a move is fed once the
+    odometry covers its end. ``streams`` (each robot's decoded LMS stream so far) are passed to
+    :meth:`feed`, since they grow."""
+
+    def __init__(self, config: Config, robots: list[str], starts: dict[str, np.ndarray],
+                 odometry: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:  # fmt: skip
+        self.config, self.robots, self.odometry = config, robots, odometry
+        self.builder = GraphBuilder(graph_settings(config))
+        self.params = beacon_parameters(config)
+        self.events: list[Event] = []
+        self.sweeps: list[Sweep] = []
+        self.dwells = self.observations = self.held_back = 0
+        self.missing: list[str] = []
+        self.unseen: list[str] = []
+        # Odometry of a robot that moved before its first fix: (to_index, delta) per robot.
+        self.pending: dict[str, list[tuple[int, tuple[float, float, float]]]] = {}
+        gauge = robots[0]
+        self._emit(Start(gauge, 0, tuple(float(v) for v in starts[gauge])))  # type: ignore[arg-type]
+
+    def _emit(self, event: Event) -> None:
+        self.builder.add(event)
+        self.events.append(event)
+
+    def feed(
+        self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]
+    ) -> list[Event]:
+        """Turn dataset event ``number`` into estimator events; returns the new ones."""
+        before = len(self.events)
+        kind = entry["event"]
+        if kind == "move":
+            self._move(entry)
+        elif kind == "dwell":
+            self._dwell(number, entry, streams)
+        return self.events[before:]
+
+    def _move(self, entry: dict[str, Any]) -> None:
+        robot = entry["robot"]
+        stamps, poses = self.odometry[robot]
+        before = _pose_at(stamps, poses, float(entry["start_s"]))
+        after = _pose_at(stamps, poses, float(entry["t_s"]))
+        dx, dy, dyaw = (float(v) for v in se2.between(before, after))
+        delta = (dx, dy, dyaw)
+        if pose_key(robot, int(entry["from_index"])) in self.builder.guesses:
+            self._emit(Move(robot, int(entry["to_index"]), delta))
+        else:
+            self.held_back += 1
+            self.pending.setdefault(robot, []).append((int(entry["to_index"]), delta))
+
+    def _dwell(self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]) -> None:
+        config, builder = self.config, self.builder
+        self.dwells += 1
+        start, end = float(entry["t_s"]), float(entry["end_s"])
+        in_dwell: dict[str, Sweep] = {}
+        for robot in self.robots:
+            scan, why = sweep_in(streams[robot], start + 0.2, end, config)
+            index = int(entry["poses"][robot])
+            if scan is None:
+                self.missing.append(f"{robot}{index} (dwell {number}): {why}")
+                continue
+            detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **self.params)
+            sweep = Sweep(robot, index, number, scan, detections)
+            self.sweeps.append(sweep)
+            in_dwell[robot] = sweep
+        reference, mapper = entry.get("reference"), entry.get("mapper")
+        if reference in in_dwell and mapper in in_dwell:
+            ka = pose_key(reference, in_dwell[reference].index)
+            kc = pose_key(mapper, in_dwell[mapper].index)
+            seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
+            seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
+            if seen_a is None or seen_c is None:
+                self.unseen.append(
+                    f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
+                )
+            elif ka in builder.guesses or kc in builder.guesses:
+                observer = (reference, in_dwell[reference].index)
+                observed = (mapper, in_dwell[mapper].index)
+                self._emit(
+                    Observe(
+                        observer, observed,
+                        seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad,
+                    )
+                )  # fmt: skip
+                self.observations += 1
+                _flush_pending(self.pending, builder, self._emit)
+
+    def counts(self) -> Counts:
+        return Counts(self.dwells, self.observations, tuple(self.missing), tuple(self.unseen),
+                      self.held_back)  # fmt: skip
+
+    def result(self) -> EventStream:
+        return EventStream(self.events, self.sweeps, self.counts(), self.builder)
+
+
 def build_events(
     dataset: Dataset,
     streams: dict[str, RobotStream],
     progress: Progress | None = None,
 ) -> EventStream:
-    """The estimator's event stream of a dataset, the sweeps, and the counts of what failed.
-
-    A builder consumes the events as they are made, so that each observation can be matched to
-    the beacon predicted by the estimate so far.
-    """
-    config = dataset.config
-    builder = GraphBuilder(graph_settings(config))
-    params = beacon_parameters(config)
+    """The estimator's event stream of a dataset, the sweeps, and the counts of what failed
+    (:class:`EventMaker` over the dataset's event log)."""
     odometry = {r: read_tum(dataset.path / "robots" / r / "odometry.tum") for r in dataset.robots}
-    gauge = dataset.robots[0]
-    events: list[Event] = []
-    sweeps: list[Sweep] = []
-    dwells = observations = held_back = 0
-    missing: list[str] = []
-    unseen: list[str] = []
-    # Odometry of a robot that moved before its first fix: (to_index, delta) per robot.
-    pending: dict[str, list[tuple[int, tuple[float, float, float]]]] = {}
-
-    def emit(event: Event) -> None:
-        builder.add(event)
-        events.append(event)
-
-    emit(Start(gauge, 0, tuple(float(v) for v in dataset.starts[gauge])))  # type: ignore[arg-type]
+    maker = EventMaker(dataset.config, dataset.robots, dataset.starts, odometry)
     for number, entry in enumerate(dataset.events):
-        kind = entry["event"]
-        if kind == "move":
-            robot = entry["robot"]
-            stamps, poses = odometry[robot]
-            before = _pose_at(stamps, poses, float(entry["start_s"]))
-            after = _pose_at(stamps, poses, float(entry["t_s"]))
-            dx, dy, dyaw = (float(v) for v in se2.between(before, after))
-            delta = (dx, dy, dyaw)
-            if pose_key(robot, int(entry["from_index"])) in builder.guesses:
-                emit(Move(robot, int(entry["to_index"]), delta))
-            else:
-                held_back += 1
-                pending.setdefault(robot, []).append((int(entry["to_index"]), delta))
-        elif kind == "dwell":
-            dwells += 1
-            start, end = float(entry["t_s"]), float(entry["end_s"])
-            in_dwell: dict[str, Sweep] = {}
-            for robot in dataset.robots:
-                scan, why = sweep_in(streams[robot], start + 0.2, end, config)
-                index = int(entry["poses"][robot])
-                if scan is None:
-                    missing.append(f"{robot}{index} (dwell {number}): {why}")
-                    continue
-                detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **params)
-                sweep = Sweep(robot, index, number, scan, detections)
-                sweeps.append(sweep)
-                in_dwell[robot] = sweep
-            reference, mapper = entry.get("reference"), entry.get("mapper")
-            if reference in in_dwell and mapper in in_dwell:
-                ka = pose_key(reference, in_dwell[reference].index)
-                kc = pose_key(mapper, in_dwell[mapper].index)
-                seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
-                seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
-                if seen_a is None or seen_c is None:
-                    unseen.append(
-                        f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
-                    )
-                elif ka in builder.guesses or kc in builder.guesses:
-                    observer = (reference, in_dwell[reference].index)
-                    observed = (mapper, in_dwell[mapper].index)
-                    emit(
-                        Observe(
-                            observer, observed,
-                            seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad,
-                        )
-                    )  # fmt: skip
-                    observations += 1
-                    _flush_pending(pending, builder, emit)
+        maker.feed(number, entry, streams)
         if progress is not None:
             progress(f"event {number + 1}/{len(dataset.events)}")
-    counts = Counts(dwells, observations, tuple(missing), tuple(unseen), held_back)
-    return EventStream(events, sweeps, counts, builder)
+    return maker.result()
 
 
 def _flush_pending(

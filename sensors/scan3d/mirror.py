@@ -35,6 +35,7 @@ __all__ = [
     "MirrorEstimate",
     "MirrorGeometry",
     "Scan3D",
+    "ScanClock",
     "arm_blocked",
     "assemble_sweeps",
     "edge_on_times",
@@ -91,22 +92,48 @@ def scan_times(scans: list[Scan]) -> np.ndarray:
     the times are anchored so that they lie at or before the host stamps. Without them, the
     host receive stamps are used as they are.
     """
-    stamps = np.array([np.nan if s.stamp_s is None else s.stamp_s for s in scans], dtype=float)
-    if len(scans) == 0:
-        return stamps
-    if np.isnan(stamps).any():
+    clock = ScanClock()
+    if any(s.stamp_s is None for s in scans):
         raise SensorError("every scan needs a host stamp to be placed in time")
-    if any(s.scan_index is None for s in scans):
-        return stamps
-    index = np.array([s.scan_index for s in scans], dtype=np.int64)
-    turns = np.zeros(len(scans), dtype=np.int64)
-    for k in range(1, len(scans)):
-        step = int((index[k] - index[k - 1]) % 256)
-        expected = (stamps[k] - stamps[k - 1]) / TURN_S
-        wraps = max(0, round((expected - step) / 256))
-        turns[k] = turns[k - 1] + step + 256 * wraps
-    relative = turns * TURN_S
-    return np.asarray(relative + np.min(stamps - relative))
+    for scan in scans:
+        clock.add(scan)
+    return clock.times()
+
+
+class ScanClock:
+    """:func:`scan_times` of a stream that grows scan by scan: the times of all scans so far,
+    equal to ``scan_times`` of the same scans (the anchor is the running minimum)."""
+
+    def __init__(self) -> None:
+        self.stamps: list[float] = []
+        self.turns: list[int] = []
+        self.indexed = True
+        self._index = 0
+        self._anchor = math.inf
+
+    def add(self, scan: Scan) -> None:
+        if scan.stamp_s is None:
+            raise SensorError("every scan needs a host stamp to be placed in time")
+        stamp = float(scan.stamp_s)
+        index = scan.scan_index
+        if index is None:
+            self.indexed = False
+        elif self.indexed:
+            if self.turns:
+                step = int((index - self._index) % 256)
+                expected = (stamp - self.stamps[-1]) / TURN_S
+                wraps = max(0, round((expected - step) / 256))
+                self.turns.append(self.turns[-1] + step + 256 * wraps)
+            else:
+                self.turns.append(0)
+            self._index = int(index)
+            self._anchor = min(self._anchor, stamp - self.turns[-1] * TURN_S)
+        self.stamps.append(stamp)
+
+    def times(self) -> np.ndarray:
+        if not self.indexed or not self.stamps:
+            return np.array(self.stamps, dtype=float)
+        return np.asarray(np.array(self.turns, dtype=np.int64) * TURN_S + self._anchor)
 
 
 def arm_blocked(scans: list[Scan], arm_samples: int, arm_max_range_m: float) -> np.ndarray:

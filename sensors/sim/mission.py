@@ -18,6 +18,7 @@ ground truth (``ground_truth/<name>.tum``), plus the world(s) and the effective 
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Callable
@@ -50,9 +51,12 @@ __all__ = [
     "ChangesSpec",
     "MissionError",
     "MissionSpec",
+    "Odometer",
     "OdometryNoise",
+    "SensorRecorder",
     "StepSpec",
     "Timeline",
+    "TimelineBuilder",
     "build_timeline",
     "load_mission",
     "mission_from_mapping",
@@ -200,7 +204,13 @@ class Timeline:
         return self.tracks[robot].at(np.asarray(times, dtype=float))
 
 
-class _Builder:
+class TimelineBuilder:
+    """The timeline as it is flown: one robot moves at a time, everybody dwells together.
+
+    ``move`` plans its path through the free space of the true world (as ``simulate`` does for a
+    plan), or follows the ``path`` it is given (as a robot follows the mission loop's plan on
+    the estimated map), refusing a path that would collide in the true world."""
+
     def __init__(self, starts: dict[str, np.ndarray], space: FreeSpace, speed_m_s: float,
                  turn_rate_rad_s: float, dwell_s: float) -> None:  # fmt: skip
         self.t = 0.0
@@ -220,20 +230,33 @@ class _Builder:
     def log(self, event: str, **fields: Any) -> None:
         self.timeline.events.append({"t_s": round(self.t, 6), "event": event, **fields})
 
-    def move(self, robot: str, target: np.ndarray, where: str) -> None:
+    def move(
+        self, robot: str, target: np.ndarray, where: str, path: list[np.ndarray] | None = None
+    ) -> bool:
+        """Drive ``robot`` to ``target`` (x, y, yaw); False if it already stands there.
+        MissionError (nothing moved) when the target or the path is not free in the world."""
         track = self.timeline.tracks[robot]
         start = track.pose
         if (
             np.allclose(start[:2], target[:2], atol=1e-6)
             and abs(_wrap(target[2] - start[2])) < 1e-6
         ):
-            return
+            return False
         if not self.space.is_free(target[:2]):
             raise MissionError(
                 f"{where}: robot {robot!r} cannot stand at ({target[0]:g}, {target[1]:g}): "
                 "inside or too close to an obstacle, or outside the rooms"
             )
-        legs = self.space.path(start[:2], target[:2])
+        if path is None:
+            legs = self.space.path(start[:2], target[:2])
+        else:
+            legs = [start[:2], *(np.asarray(p, dtype=float)[:2] for p in path[1:-1]), target[:2]]
+            for a, b in itertools.pairwise(legs):
+                if not self.space.segment_free(a, b):
+                    raise MissionError(
+                        f"{where}: robot {robot!r} would collide on the leg ({a[0]:.2f}, "
+                        f"{a[1]:.2f}) → ({b[0]:.2f}, {b[1]:.2f}) of its path"
+                    )
         if legs is None:
             raise MissionError(
                 f"{where}: robot {robot!r} cannot reach ({target[0]:g}, {target[1]:g}) "
@@ -264,6 +287,7 @@ class _Builder:
         self.timeline.stops[robot].append((t, target.copy()))
         self.log("move", robot=robot, from_index=self.index[robot] - 1,
                  to_index=self.index[robot], start_s=round(begin, 6))  # fmt: skip
+        return True
 
     def dwell(self, **fields: Any) -> None:
         begin = self.t
@@ -287,17 +311,16 @@ def build_timeline(
     changes_at_end: bool,
 ) -> Timeline:
     """The leapfrog as a timeline: one robot moves at a time; all dwell at every stop."""
-    builder = _Builder(
+    builder = TimelineBuilder(
         {r.name: _pose(r.start) for r in mission.robots}, space, speed_m_s, turn_rate_rad_s, dwell_s
     )
     builder.dwell(phase="start", reference=steps[0].reference, mapper=steps[0].mapper, step=-1)
     for k, step in enumerate(steps):
         builder.log("roles", reference=step.reference, mapper=step.mapper, step=k)
-        if step.at is not None:
-            before = builder.index[step.reference]
-            builder.move(step.reference, _pose(step.at), f"plan[{k}] station")
-            if builder.index[step.reference] != before:
-                builder.dwell(phase="station", reference=step.reference, mapper=step.mapper, step=k)
+        if step.at is not None and builder.move(
+            step.reference, _pose(step.at), f"plan[{k}] station"
+        ):
+            builder.dwell(phase="station", reference=step.reference, mapper=step.mapper, step=k)
         for j, scan in enumerate(step.scans):
             builder.move(step.mapper, _pose(scan), f"plan[{k}].scans[{j}]")
             builder.dwell(phase="mapping", reference=step.reference, mapper=step.mapper, step=k)
@@ -323,6 +346,54 @@ class OdometryNoise:
     sigma_rad_per_rad: float = math.radians(1.0)
 
 
+class Odometer:
+    """A robot's odometry over a timeline that may still grow: each leg's error is drawn when
+    the leg is first needed, in leg order, and accrues in proportion to the leg's elapsed time;
+    the poses are integrated from the start pose."""
+
+    def __init__(self, timeline: Timeline, robot: str, noise: OdometryNoise,
+                 rng: np.random.Generator) -> None:  # fmt: skip
+        self.timeline, self.robot, self.noise, self.rng = timeline, robot, noise, rng
+        self.errors: list[np.ndarray] = []
+        self.stops = [timeline.stops[robot][0][1].astype(float)]
+
+    def _draw(self) -> None:
+        stops = [pose for _, pose in self.timeline.stops[self.robot]]
+        noise = self.noise
+        for k in range(len(self.errors), len(self.timeline.legs[self.robot])):
+            delta = se2.between(stops[k], stops[k + 1])
+            travelled = math.hypot(delta[0], delta[1])
+            turned = abs(delta[2]) + (
+                abs(math.atan2(delta[1], delta[0])) if travelled > 1e-6 else 0.0
+            )
+            st = noise.sigma_m + noise.sigma_per_m * travelled
+            sr = noise.sigma_rad + noise.sigma_rad_per_rad * turned
+            rng = self.rng
+            error = np.array([rng.normal(0, st), rng.normal(0, st), rng.normal(0, sr)])
+            self.errors.append(error)
+            self.stops.append(se2.compose(self.stops[-1], delta + error))
+
+    def at(self, times: np.ndarray) -> np.ndarray:
+        """Odometry poses (N, 3) at ``times`` (none later than the timeline's last keyframe)."""
+        self._draw()
+        true = self.timeline.poses_at(self.robot, times)
+        out = np.empty_like(true)
+        legs = self.timeline.legs[self.robot]
+        stops = [pose for _, pose in self.timeline.stops[self.robot]]
+        for i, t in enumerate(times):
+            leg = next((k for k, (t0, t1, _) in enumerate(legs) if t0 <= t < t1), None)
+            if leg is None:
+                done = sum(1 for (_, t1, _) in legs if t1 <= t)
+                out[i] = self.stops[done]
+                continue
+            t0, t1, _ = legs[leg]
+            fraction = (t - t0) / (t1 - t0)
+            delta = se2.between(stops[leg], true[i])
+            out[i] = se2.compose(self.stops[leg], delta + fraction * self.errors[leg])
+        out[:, 2] = np.angle(np.exp(1j * out[:, 2]))
+        return out
+
+
 def odometry(
     timeline: Timeline,
     robot: str,
@@ -330,35 +401,8 @@ def odometry(
     noise: OdometryNoise,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Odometry poses (N, 3) at ``times``: each leg's motion with an error drawn for the leg and
-    accrued in proportion to the leg's elapsed time, integrated from the start pose."""
-    true = timeline.poses_at(robot, times)
-    out = np.empty_like(true)
-    legs = timeline.legs[robot]
-    stops = [pose for _, pose in timeline.stops[robot]]
-    odo_stop = [stops[0].astype(float)]
-    errors = []
-    for k in range(len(legs)):
-        delta = se2.between(stops[k], stops[k + 1])
-        travelled = math.hypot(delta[0], delta[1])
-        turned = abs(delta[2]) + (abs(math.atan2(delta[1], delta[0])) if travelled > 1e-6 else 0.0)
-        st = noise.sigma_m + noise.sigma_per_m * travelled
-        sr = noise.sigma_rad + noise.sigma_rad_per_rad * turned
-        error = np.array([rng.normal(0, st), rng.normal(0, st), rng.normal(0, sr)])
-        errors.append(error)
-        odo_stop.append(se2.compose(odo_stop[-1], delta + error))
-    for i, t in enumerate(times):
-        leg = next((k for k, (t0, t1, _) in enumerate(legs) if t0 <= t < t1), None)
-        if leg is None:
-            done = sum(1 for (_, t1, _) in legs if t1 <= t)
-            out[i] = odo_stop[done]
-            continue
-        t0, t1, _ = legs[leg]
-        fraction = (t - t0) / (t1 - t0)
-        delta = se2.between(stops[leg], true[i])
-        out[i] = se2.compose(odo_stop[leg], delta + fraction * errors[leg])
-    out[:, 2] = np.angle(np.exp(1j * out[:, 2]))
-    return out
+    """Odometry poses (N, 3) at ``times`` of a finished timeline (:class:`Odometer`)."""
+    return Odometer(timeline, robot, noise, rng).at(times)
 
 
 # --------------------------------------------------------------------------------------------
@@ -401,43 +445,79 @@ def write_dataset(
         count = len(scanner.bearing_rad)
         times = telegram_times(0.0, timeline.end_s, baud_rate, count, scanner.resolution_deg)
         capture = out_dir / "robots" / name / "lms.cap"
-        capture.unlink(missing_ok=True)
-        writer = CaptureWriter(capture, {"robot": name, "baud_rate": baud_rate, "simulated": True})
-        telegrams = 0
+        recorder = SensorRecorder(capture, name, scanner, body, scanner_height_m, baud_rate)
         try:
             for start in range(0, len(times), chunk_scans):
-                chunk = times[start : start + chunk_scans]
-                pose = timeline.poses_at(name, chunk)
-                T = np.stack([
-                    scanner_pose_matrix(x, y, yaw, body.scanner_x_m, scanner_height_m)
-                    for x, y, yaw in pose
-                ])  # fmt: skip
-                others = [o for o in robots if o != name]
-                cylinders = robot_cylinders(
-                    body, np.stack([timeline.poses_at(o, chunk) for o in others], axis=1)
-                )
-                scans: list[Any] = []
-                for scene_time in sorted({_scene_key(timeline, t) for t in chunk}):
-                    rows = np.array([_scene_key(timeline, t) == scene_time for t in chunk])
-                    scans.append((rows, scanner.scan(scenes(scene_time), T[rows], chunk[rows], rng,
-                                                     cylinders=cylinders[rows])))  # fmt: skip
-                merged = _merge(scans, len(chunk))
-                for stamp, data in scan_stream(merged, baud_rate=baud_rate, first_telegram=start):
-                    writer.write(stamp, data)
-                    telegrams += 1
+                recorder.record(timeline, scenes, times[start : start + chunk_scans], rng)
                 if progress is not None:
-                    progress(name, (r + (start + len(chunk)) / max(len(times), 1)) / len(robots))
+                    done = (start + chunk_scans) / max(len(times), 1)
+                    progress(name, (r + min(done, 1.0)) / len(robots))
         except BaseException:
-            writer.discard()
+            recorder.writer.discard()
             raise
-        writer.close()
+        recorder.writer.close()
         stats["robots"][name] = {
-            "telegrams": telegrams,
+            "telegrams": recorder.telegrams,
             "poses": len(timeline.stops[name]),
-            "bytes": writer.bytes_written,
+            "bytes": recorder.writer.bytes_written,
             "motor_period_s": scanner.motor_period_s,
         }
     return stats
+
+
+class SensorRecorder:
+    """One robot's LMS 200 as the simulator runs it: the scans measured at given instants of a
+    timeline, encoded as the sensor's telegrams and appended to the robot's capture."""
+
+    def __init__(self, capture: Path, robot: str, scanner: SimulatedScanner, body: RobotBody,
+                 scanner_height_m: float, baud_rate: int) -> None:  # fmt: skip
+        capture.parent.mkdir(parents=True, exist_ok=True)
+        capture.unlink(missing_ok=True)
+        self.robot, self.scanner, self.body = robot, scanner, body
+        self.scanner_height_m, self.baud_rate = scanner_height_m, baud_rate
+        self.writer = CaptureWriter(
+            capture, {"robot": robot, "baud_rate": baud_rate, "simulated": True}
+        )
+        self.telegrams = 0
+
+    def due(self, until_s: float) -> np.ndarray:
+        """The instants of the telegrams not yet recorded that begin before ``until_s``."""
+        times = telegram_times(0.0, until_s, self.baud_rate, len(self.scanner.bearing_rad),
+                               self.scanner.resolution_deg)  # fmt: skip
+        return times[self.telegrams :]
+
+    def record(
+        self,
+        timeline: Timeline,
+        scenes: Callable[[float], RaycastScene],
+        chunk: np.ndarray,
+        rng: np.random.Generator,
+    ) -> list[tuple[float, bytes]]:
+        """Measure, encode and record the telegrams at the instants ``chunk`` (the next ones of
+        the continuous output); returns them as (receive stamp, bytes)."""
+        if not len(chunk):
+            return []
+        body, scanner = self.body, self.scanner
+        pose = timeline.poses_at(self.robot, chunk)
+        T = np.stack([
+            scanner_pose_matrix(x, y, yaw, body.scanner_x_m, self.scanner_height_m)
+            for x, y, yaw in pose
+        ])  # fmt: skip
+        others = [o for o in timeline.tracks if o != self.robot]
+        cylinders = robot_cylinders(
+            body, np.stack([timeline.poses_at(o, chunk) for o in others], axis=1)
+        )
+        scans: list[Any] = []
+        for scene_time in sorted({_scene_key(timeline, t) for t in chunk}):
+            rows = np.array([_scene_key(timeline, t) == scene_time for t in chunk])
+            scans.append((rows, scanner.scan(scenes(scene_time), T[rows], chunk[rows], rng,
+                                             cylinders=cylinders[rows])))  # fmt: skip
+        merged = _merge(scans, len(chunk))
+        written = scan_stream(merged, baud_rate=self.baud_rate, first_telegram=self.telegrams)
+        for stamp, data in written:
+            self.writer.write(stamp, data)
+        self.telegrams += len(written)
+        return written
 
 
 def _scene_key(timeline: Timeline, t: float) -> float:
