@@ -137,22 +137,34 @@ def line_of_sight(
     end_m: np.ndarray,
     *,
     end_clearance_m: float = 0.15,
+    start_clearance_m: float = 0.0,
     unknown_blocks: bool = True,
+    ignore_xy: np.ndarray | None = None,
+    ignore_radius_m: float = 0.0,
 ) -> bool:
     """Whether the segment start → end (map frame, metres) crosses no occupied cell of the
-    estimated map, nor (with ``unknown_blocks``) a cell nobody has seen; the last
-    ``end_clearance_m`` before the end (the target itself, e.g. a beacon's cylinder) is not
-    tested. The cells are those the fusion's own traversal visits."""
+    estimated map, nor (with ``unknown_blocks``) a cell nobody has seen; the first
+    ``start_clearance_m`` and the last ``end_clearance_m`` (the observer's own body, the target
+    itself, e.g. a beacon's cylinder) are not tested, nor cells within ``ignore_radius_m`` (in
+    the plane) of the points ``ignore_xy`` (N, 2) — where robots stood, whose bodies other
+    robots' scans put in the map. The cells are those the fusion's own traversal visits."""
     start = np.asarray(start_m, dtype=float)
     end = np.asarray(end_m, dtype=float)
-    length = float(np.linalg.norm(end - start))
     if not (np.isfinite(start).all() and np.isfinite(end).all()):
         raise MapError(f"line of sight needs finite end points, got {start} and {end}")
-    if length <= end_clearance_m:
+    length = float(np.linalg.norm(end - start))
+    if length <= end_clearance_m + start_clearance_m:
         return True
+    first = start + (end - start) * (start_clearance_m / length)
     stop = start + (end - start) * (1.0 - end_clearance_m / length)
     origin, res = grid.origin_m, grid.resolution_m
-    cells = ray_cells((start - origin) / res, (stop - origin) / res, True)
+    cells = ray_cells((first - origin) / res, (stop - origin) / res, True)
+    if ignore_xy is not None and len(ignore_xy) and ignore_radius_m > 0:
+        centres = grid.cell_centers(cells)[:, :2]
+        points = np.asarray(ignore_xy, dtype=float).reshape(-1, 2)
+        near = np.hypot(centres[:, None, 0] - points[None, :, 0],
+                        centres[:, None, 1] - points[None, :, 1]) <= ignore_radius_m  # fmt: skip
+        cells = cells[~near.any(axis=1)]
     values = grid.logodds_at(cells)
     if unknown_blocks and np.isnan(values).any():
         return False

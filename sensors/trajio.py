@@ -22,10 +22,12 @@ from sensors.yamlio import regular_file
 
 __all__ = [
     "G2oGraph",
+    "as_logged",
     "read_carmen_odometry",
     "read_g2o",
     "read_relations",
     "read_tum",
+    "tum_rows",
     "write_g2o",
     "write_tum",
 ]
@@ -90,17 +92,39 @@ def write_tum(
         raise TrajectoryError(
             f"write_tum: need stamps (N,) and poses (N, 3), got {stamps_s.shape} and {poses.shape}"
         )
-    half = poses[:, 2] / 2.0
+    rows = tum_rows(stamps_s, poses, z_m=z_m, decimals=decimals)
+    write_text_atomic(path, "# timestamp tx ty tz qx qy qz qw\n" + "".join(r + "\n" for r in rows))
+    return path
+
+
+def tum_rows(
+    stamps_s: np.ndarray, poses: np.ndarray, *, z_m: float = 0.0, decimals: int = 9
+) -> list[str]:
+    """The lines :func:`write_tum` writes (without their newlines)."""
+    half = np.asarray(poses, dtype=float)[:, 2] / 2.0
     d = decimals
     z = f"{z_m:.{d}f}" if z_m != 0.0 or d != 9 else "0"
-    rows = [
+    return [
         f"{t:.{d}f} {x:.{d}f} {y:.{d}f} {z} 0 0 {qz:.9f} {qw:.9f}"
         for t, x, y, qz, qw in zip(
             stamps_s, poses[:, 0], poses[:, 1], np.sin(half), np.cos(half), strict=True
         )
     ]
-    write_text_atomic(path, "# timestamp tx ty tz qx qy qz qw\n" + "".join(r + "\n" for r in rows))
-    return path
+
+
+def as_logged(
+    stamps_s: np.ndarray, poses: np.ndarray, decimals: int = 9
+) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps and poses exactly as :func:`read_tum` reads them back from :func:`write_tum`
+    with ``decimals`` (what a consumer of a live log sees and what a later reader of the file
+    sees are then the same numbers)."""
+    stamps, out = [], []
+    for row in tum_rows(np.asarray(stamps_s, dtype=float), np.asarray(poses, dtype=float),
+                        decimals=decimals):  # fmt: skip
+        t, x, y, _, _, _, qz, qw = (float(f) for f in row.split())
+        stamps.append(t)
+        out.append((x, y, float(wrap_angle(2.0 * math.atan2(qz, qw)))))
+    return np.asarray(stamps, dtype=float), np.asarray(out, dtype=float).reshape(-1, 3)
 
 
 def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:

@@ -55,7 +55,9 @@ __all__ = [
     "read_robots",
     "relocalization_dwells",
     "stations",
+    "stations_of",
     "sweep_in",
+    "sweeps_before_changes",
 ]
 
 Progress = Callable[[str], None]
@@ -458,7 +460,7 @@ class EventMaker:
         self.missing: list[str] = []
         self.unseen: list[str] = []
         # Odometry of a robot that moved before its first fix: (to_index, delta) per robot.
-        self.pending: dict[str, list[tuple[int, tuple[float, float, float]]]] = {}
+        self.pending: dict[str, list[Move]] = {}
         gauge = robots[0]
         self._emit(Start(gauge, 0, tuple(float(v) for v in starts[gauge])))  # type: ignore[arg-type]
 
@@ -481,15 +483,17 @@ class EventMaker:
     def _move(self, entry: dict[str, Any]) -> None:
         robot = entry["robot"]
         stamps, poses = self.odometry[robot]
-        before = _pose_at(stamps, poses, float(entry["start_s"]))
-        after = _pose_at(stamps, poses, float(entry["t_s"]))
+        start_s, end_s = float(entry["start_s"]), float(entry["t_s"])
+        before = _pose_at(stamps, poses, start_s)
+        after = _pose_at(stamps, poses, end_s)
         dx, dy, dyaw = (float(v) for v in se2.between(before, after))
-        delta = (dx, dy, dyaw)
+        step = Move(robot, int(entry["to_index"]), (dx, dy, dyaw),
+                    _motion(stamps, poses, start_s, end_s, before, after))  # fmt: skip
         if pose_key(robot, int(entry["from_index"])) in self.builder.guesses:
-            self._emit(Move(robot, int(entry["to_index"]), delta))
+            self._emit(step)
         else:
             self.held_back += 1
-            self.pending.setdefault(robot, []).append((int(entry["to_index"]), delta))
+            self.pending.setdefault(robot, []).append(step)
 
     def _dwell(self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]) -> None:
         config, builder = self.config, self.builder
@@ -552,39 +556,60 @@ def build_events(
     return maker.result()
 
 
+def _motion(stamps: np.ndarray, poses: np.ndarray, start_s: float, end_s: float,
+            before: np.ndarray, after: np.ndarray) -> tuple[float, float]:  # fmt: skip
+    """How far the odometry says the robot drove and how much it turned between two instants
+    (the samples in between, and the poses at both ends)."""
+    inside = (stamps > start_s) & (stamps < end_s)
+    track = np.vstack([before, poses[inside], after])
+    driven = float(np.hypot(*np.diff(track[:, :2], axis=0).T).sum())
+    turned = float(np.abs(np.angle(np.exp(1j * np.diff(track[:, 2])))).sum())
+    return driven, turned
+
+
 def _flush_pending(
-    pending: dict[str, list[tuple[int, tuple[float, float, float]]]],
+    pending: dict[str, list[Move]],
     builder: GraphBuilder,
     emit: Callable[[Event], None],
 ) -> None:
     """Odometry of a robot that moved before its first fix joins once it is anchored."""
     for robot, moves in list(pending.items()):
-        while moves and pose_key(robot, moves[0][0] - 1) in builder.guesses:
-            index, delta = moves.pop(0)
-            if pose_key(robot, index) not in builder.guesses:
-                emit(Move(robot, index, delta))
+        while moves and pose_key(robot, moves[0].index - 1) in builder.guesses:
+            step = moves.pop(0)
+            if pose_key(robot, step.index) not in builder.guesses:
+                emit(step)
         if not moves:
             del pending[robot]
 
 
-def _relocalization_numbers(dataset: Dataset) -> set[int]:
-    return {n for n, e in enumerate(dataset.events)
+def _relocalization_numbers(events: list[dict[str, Any]]) -> set[int]:
+    return {n for n, e in enumerate(events)
             if e["event"] == "dwell" and e.get("phase") == "relocalize"}  # fmt: skip
 
 
 def mapping_sweeps(dataset: Dataset, sweeps: list[Sweep]) -> list[Sweep]:
     """The sweeps of the mapping: not those taken after the world changed."""
-    after = _relocalization_numbers(dataset)
+    return sweeps_before_changes(dataset.events, sweeps)
+
+
+def sweeps_before_changes(events: list[dict[str, Any]], sweeps: list[Sweep]) -> list[Sweep]:
+    """:func:`mapping_sweeps` of a mission's event entries (so far)."""
+    after = _relocalization_numbers(events)
     return [s for s in sweeps if s.dwell not in after]
 
 
 def stations(dataset: Dataset, sweeps: list[Sweep]) -> list[Station]:
     """Every reference station of the mapping with the sweeps of its dwells, in time order."""
+    return stations_of(dataset.events, sweeps)
+
+
+def stations_of(events: list[dict[str, Any]], sweeps: list[Sweep]) -> list[Station]:
+    """:func:`stations` of a mission's event entries (so far)."""
     by_dwell: dict[int, list[Sweep]] = {}
     for sweep in sweeps:
         by_dwell.setdefault(sweep.dwell, []).append(sweep)
     found: dict[tuple[str, int], tuple[float, list[Sweep]]] = {}
-    for number, event in enumerate(dataset.events):
+    for number, event in enumerate(events):
         if (
             event["event"] != "dwell"
             or event.get("phase") == "relocalize"
@@ -603,5 +628,5 @@ def relocalization_dwells(dataset: Dataset, sweeps: list[Sweep]) -> list[Dwell]:
     """The dwells after the world changed, each with every robot's sweep in it."""
     return [
         Dwell(float(dataset.events[n]["t_s"]), tuple(s.view() for s in sweeps if s.dwell == n))
-        for n in sorted(_relocalization_numbers(dataset))
+        for n in sorted(_relocalization_numbers(dataset.events))
     ]

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from estimation import __version__
+from estimation.app.config import Config
 from estimation.app.dataset import (
     Counts,
     Dataset,
@@ -40,7 +41,12 @@ from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
 from estimation.posegraph.keys import key_label, pose_key, split_key
-from estimation.posegraph.smoother import BatchResult, marginal_covariances, optimize_batch
+from estimation.posegraph.smoother import (
+    BatchResult,
+    IncrementalSmoother,
+    marginal_covariances,
+    optimize_batch,
+)
 from estimation.posegraph.validate import validate_and_repair
 from estimation.search.stations import (
     SEARCH_STAGES,
@@ -58,7 +64,16 @@ from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureReader
 from sensors.trajio import read_tum
 
-__all__ = ["Prepared", "Solution", "Timings", "prepare", "run_batch", "run_isam"]
+__all__ = [
+    "Prepared",
+    "Solution",
+    "Timings",
+    "finish_isam",
+    "isam_options",
+    "prepare",
+    "run_batch",
+    "run_isam",
+]
 
 Progress = Callable[[str], None]
 
@@ -400,22 +415,13 @@ def run_isam(
     ``resume`` continues from the checkpoint of an earlier run that was cut short.
     ``stop_after`` ends the run after that many events without writing results (as a kill would).
     """
-    from estimation.posegraph.smoother import IncrementalSmoother
-
     out = Path(out_dir) if out_dir is not None else Path(dataset_dir) / "result_isam"
     check_replaceable(out, "result")  # before the work, not after it
     prepared = prepare(dataset_dir, overrides, progress)
     dataset, events = prepared.dataset, prepared.events
     config = dataset.config
     checkpoint = out.with_name(f".{out.name}.checkpoint.npz")
-    robust = config.graph.robust
-    kernel: Any = robust if robust in ("huber", "cauchy") else "none"
-    options = {
-        "settings": graph_settings(config),
-        "relinearize_threshold": config.graph.isam2_relinearize_threshold,
-        "relinearize_skip": config.graph.isam2_relinearize_skip,
-        "kernel": kernel,
-    }
+    options = isam_options(config)
     clock = time.perf_counter()
     if resume:
         if not checkpoint.is_file():
@@ -433,12 +439,44 @@ def run_isam(
             smoother.save_checkpoint(checkpoint)
             return None
     optimize_s = time.perf_counter() - clock
+    output = finish_isam(prepared, smoother, out, optimize_s=optimize_s, progress=progress,
+                         extra={"resumed": resume})  # fmt: skip
+    checkpoint.unlink(missing_ok=True)
+    return output
+
+
+def isam_options(config: Config) -> dict[str, Any]:
+    """The :class:`IncrementalSmoother` settings of a configuration."""
+    robust = config.graph.robust
+    kernel: Any = robust if robust in ("huber", "cauchy") else "none"
+    return {
+        "settings": graph_settings(config),
+        "relinearize_threshold": config.graph.isam2_relinearize_threshold,
+        "relinearize_skip": config.graph.isam2_relinearize_skip,
+        "kernel": kernel,
+    }
+
+
+def finish_isam(
+    prepared: Prepared,
+    smoother: IncrementalSmoother,
+    out: Path,
+    *,
+    optimize_s: float,
+    progress: Progress | None = None,
+    extra: dict[str, Any] | None = None,
+    report: dict[str, Any] | None = None,
+) -> BatchOutput:
+    """After iSAM2 consumed the mission's events: the searches, settling, the map, the result.
+
+    The searches run as in batch, on the batch optimum of the same events (see
+    ``_search_stages``): the station maps then see the same poses bit for bit, and what they
+    find is fed to iSAM2 as events. Settled (every variable relinearized until nothing moves),
+    the estimate no longer depends on the order in which iSAM2 relinearized, so a resumed run
+    ends where an uninterrupted one does. ``extra`` joins the report's ``isam2`` section,
+    ``report`` its top level."""
+    config = prepared.dataset.config
     clock = time.perf_counter()
-    # The searches run as in batch, on the batch optimum of the same events (see
-    # _search_stages): the station maps then see the same poses bit for bit, and what they find
-    # is fed to iSAM2 as events. Settled (every variable relinearized until nothing moves), the
-    # estimate no longer depends on the order in which iSAM2 relinearized, so a resumed run ends
-    # where an uninterrupted one does.
     params = station_params(config)
     searched = _search_stages(prepared, prepared.builder, params, progress)
     for event in searched.events:
@@ -453,14 +491,13 @@ def run_isam(
     factors = list(builder.factors)
     update_ms = np.array(smoother.update_seconds) * 1e3
     solution = Solution(builder, factors, estimate, np.ones(len(factors), dtype=bool), [])
-    output = _finish(
+    return _finish(
         prepared, solution, timings, out,
         {"global_localization": {"searches": records_json(searched.records),
                                  "factors": len(searched.events),
                                  "relocalization": records_json(relocalized)},
-         "isam2": {"events": smoother.events, "resumed": resume,
+         "isam2": {"events": smoother.events, **(extra or {}),
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
-                   "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0}},
+                   "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0},
+         **(report or {})},
     )  # fmt: skip
-    checkpoint.unlink(missing_ok=True)
-    return output

@@ -30,11 +30,14 @@ class Start:
 @dataclass(frozen=True)
 class Move:
     """``robot`` moved from its latest pose to pose ``index``; ``delta`` is T_prev_new
-    (x_m, y_m, yaw_rad) measured by odometry."""
+    (x_m, y_m, yaw_rad) measured by odometry. ``motion`` (m driven, rad turned along the way,
+    from the odometry's samples) sets the step's uncertainty; without it the step is taken to
+    be the straight move ``delta``."""
 
     robot: str
     index: int
     delta: tuple[float, float, float]
+    motion: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

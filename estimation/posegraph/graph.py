@@ -165,11 +165,15 @@ def odometry_covariance(
     sigma_per_m: float,
     sigma_rad: float,
     sigma_rad_per_rad: float,
+    motion: tuple[float, float] | None = None,
 ) -> np.ndarray:
-    """Diagonal covariance of one odometry step: sigmas grow with distance and turn."""
+    """Diagonal covariance of one odometry step: sigmas grow with the distance driven and the
+    angle turned — along the way (``motion``: m, rad) when known, else of the net ``delta``."""
     dx, dy, dyaw = (float(v) for v in delta)
-    s_t = sigma_m + sigma_per_m * math.hypot(dx, dy)
-    s_r = sigma_rad + sigma_rad_per_rad * abs(float(se2.wrap_angle(dyaw)))
+    if motion is None:
+        motion = (math.hypot(dx, dy), abs(float(se2.wrap_angle(dyaw))))
+    s_t = sigma_m + sigma_per_m * motion[0]
+    s_r = sigma_rad + sigma_rad_per_rad * motion[1]
     return np.diag([s_t**2, s_t**2, s_r**2])
 
 
@@ -335,7 +339,7 @@ class GraphBuilder:
         s = self.settings
         cov = odometry_covariance(
             delta, s.odometry_sigma_m, s.odometry_sigma_per_m, s.odometry_sigma_rad,
-            s.odometry_sigma_rad_per_rad,
+            s.odometry_sigma_rad_per_rad, event.motion,
         )  # fmt: skip
         prev_key, key = pose_key(robot, previous), pose_key(robot, event.index)
         self._steps.setdefault(robot, {})[event.index] = _Step(previous, delta, cov)

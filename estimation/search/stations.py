@@ -241,10 +241,12 @@ def station_links(
     factors: list[FactorSpec],
     params: StationParams,
     back: tuple[int, ...] = (1,),
+    only: set[int] | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """Search each station's map against the maps of the stations ``back`` places before it,
     around the predicted relative pose; a best pose consistent with the prediction becomes a
-    ``Localize`` event."""
+    ``Localize`` event. With ``only`` (station keys), just those stations are searched (the
+    mission loop localizes each new station as it completes)."""
     search = params.station_search
     stations = [s for s in stations if s.key in estimate]
     events: list[Localize] = []
@@ -257,7 +259,12 @@ def station_links(
             maps[station.key] = _band(own, estimate[station.key], estimate, params, "ceiling")
         return maps[station.key]
 
-    pairs = [(stations[n - k], stations[n]) for n in range(len(stations)) for k in back if n >= k]
+    pairs = [
+        (stations[n - k], stations[n])
+        for n in range(len(stations))
+        for k in back
+        if n >= k and (only is None or stations[n].key in only)
+    ]
     for previous, station in pairs:
         local = station_map(station)
         global_ = station_map(previous)
@@ -307,16 +314,19 @@ def loop_closures(
     estimate: dict[int, np.ndarray],
     factors: list[FactorSpec],
     params: StationParams,
+    only: set[int] | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """Search each station against the older stations near it, in windows around the predicted
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
-    becomes a ``Localize`` event."""
+    becomes a ``Localize`` event. With ``only``, just those stations are searched."""
     search = params.station_search
     stations = [s for s in stations if s.key in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
     relative = relative_covariances(factors, estimate)
     for n, station in enumerate(stations):
+        if only is not None and station.key not in only:
+            continue
         here = estimate[station.key]
 
         def distance(s: Station) -> float:

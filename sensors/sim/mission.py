@@ -108,6 +108,11 @@ class AutoSpec(_Model):
     #: Optional waypoints (x_m, y_m) to follow in order, e.g. around a loop and back; with a
     #: route, poses are chosen by progress along it rather than by coverage alone.
     route: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = []
+    #: ``truth``: the stations and scan poses are planned before the mission on the true world
+    #: (a simulation-only shortcut); ``map``: the mission loop plans them during the mission on
+    #: the map as estimated, exploring until no reachable frontier is left or ``stations`` are
+    #: spent (``route`` and ``coverage`` then do not apply).
+    planner: Literal["truth", "map"] = "truth"
 
 
 class MissionSpec(_Model):
@@ -445,7 +450,9 @@ def write_dataset(
         count = len(scanner.bearing_rad)
         times = telegram_times(0.0, timeline.end_s, baud_rate, count, scanner.resolution_deg)
         capture = out_dir / "robots" / name / "lms.cap"
-        recorder = SensorRecorder(capture, name, scanner, body, scanner_height_m, baud_rate)
+        capture.unlink(missing_ok=True)
+        writer = CaptureWriter(capture, {"robot": name, "baud_rate": baud_rate, "simulated": True})
+        recorder = SensorRecorder(writer, name, scanner, body, scanner_height_m, baud_rate)
         try:
             for start in range(0, len(times), chunk_scans):
                 recorder.record(timeline, scenes, times[start : start + chunk_scans], rng)
@@ -453,13 +460,13 @@ def write_dataset(
                     done = (start + chunk_scans) / max(len(times), 1)
                     progress(name, (r + min(done, 1.0)) / len(robots))
         except BaseException:
-            recorder.writer.discard()
+            writer.discard()
             raise
-        recorder.writer.close()
+        writer.close()
         stats["robots"][name] = {
             "telegrams": recorder.telegrams,
             "poses": len(timeline.stops[name]),
-            "bytes": recorder.writer.bytes_written,
+            "bytes": writer.bytes_written,
             "motor_period_s": scanner.motor_period_s,
         }
     return stats
@@ -467,17 +474,14 @@ def write_dataset(
 
 class SensorRecorder:
     """One robot's LMS 200 as the simulator runs it: the scans measured at given instants of a
-    timeline, encoded as the sensor's telegrams and appended to the robot's capture."""
+    timeline, encoded as the sensor's telegrams and appended to ``writer`` (when there is one;
+    they are returned either way)."""
 
-    def __init__(self, capture: Path, robot: str, scanner: SimulatedScanner, body: RobotBody,
-                 scanner_height_m: float, baud_rate: int) -> None:  # fmt: skip
-        capture.parent.mkdir(parents=True, exist_ok=True)
-        capture.unlink(missing_ok=True)
+    def __init__(self, writer: CaptureWriter | None, robot: str, scanner: SimulatedScanner,
+                 body: RobotBody, scanner_height_m: float, baud_rate: int) -> None:  # fmt: skip
         self.robot, self.scanner, self.body = robot, scanner, body
         self.scanner_height_m, self.baud_rate = scanner_height_m, baud_rate
-        self.writer = CaptureWriter(
-            capture, {"robot": robot, "baud_rate": baud_rate, "simulated": True}
-        )
+        self.writer = writer
         self.telegrams = 0
 
     def due(self, until_s: float) -> np.ndarray:
@@ -514,8 +518,9 @@ class SensorRecorder:
                                              cylinders=cylinders[rows])))  # fmt: skip
         merged = _merge(scans, len(chunk))
         written = scan_stream(merged, baud_rate=self.baud_rate, first_telegram=self.telegrams)
-        for stamp, data in written:
-            self.writer.write(stamp, data)
+        if self.writer is not None:
+            for stamp, data in written:
+                self.writer.write(stamp, data)
         self.telegrams += len(written)
         return written
 

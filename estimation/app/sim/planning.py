@@ -14,8 +14,10 @@ coverage target or the station budget is reached.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +30,15 @@ from sensors.sim.planner import FreeSpace
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import World
 
-__all__ = ["CoverageModel", "mutual_dwells", "plan_leapfrog"]
+__all__ = [
+    "BeaconGeometry",
+    "CoverageModel",
+    "Route",
+    "grid_graph",
+    "mapper_candidates",
+    "mutual_dwells",
+    "plan_leapfrog",
+]
 
 _WEDGE_RAD = math.radians(50.0)
 _VIEW_RANGE_M = 7.0
@@ -109,17 +119,28 @@ def _opaque_grid(world: World, space: FreeSpace) -> np.ndarray:
     return opaque
 
 
-class _Geometry:
-    """Where a robot's scanner and beacon are, and whether two beacons see each other."""
+class BeaconGeometry:
+    """Where a robot's scanner and beacon are, and whether two beacons see each other: on the
+    true world (``scene``, for the simulator) or through ``line_clear(start, end)`` (3D points;
+    the mission loop asks its estimated map)."""
 
-    def __init__(self, config: Config, scene: RaycastScene) -> None:
+    def __init__(
+        self,
+        config: Config,
+        scene: RaycastScene | None = None,
+        line_clear: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+    ) -> None:
         self.scanner_x = config.robot.scanner_x_m
         self.ahead = config.robot.scanner_x_m + config.beacon.offset_m
         self.beacon_z = config.beacon.height_m
         self.scanner_z = config.robot.scanner_height_m
         self.min_bearing = config.beacon.blind_wedge_rad / 2 + math.radians(5)
         self.max_bearing = math.radians(45)
-        self.scene = scene
+        if line_clear is None:
+            if scene is None:
+                raise ValueError("BeaconGeometry needs a scene or a line_clear test")
+            line_clear = functools.partial(_scene_clear, scene)
+        self.line_clear = line_clear
 
     def scanner(self, pose: np.ndarray) -> np.ndarray:
         return pose[:2] + self.scanner_x * np.array([math.cos(pose[2]), math.sin(pose[2])])
@@ -136,9 +157,7 @@ class _Geometry:
         """A clear 3D line from the observer's scanner to the other robot's beacon (centre)."""
         start = np.array([*self.scanner(observer), self.scanner_z])
         end = np.array([*self.beacon(observed), self.beacon_z])
-        distance = float(np.linalg.norm(end - start))
-        hits = self.scene.cast(start[None], (end - start)[None], normals=False)
-        return bool(hits.range_m[0] > distance - 0.15)
+        return self.line_clear(start, end)
 
     def beacons_see_each_other(self, a: np.ndarray, b: np.ndarray) -> bool:
         return self.sees_beacon(a, b) and self.sees_beacon(b, a)
@@ -153,6 +172,13 @@ class _Geometry:
         )
 
 
+def _scene_clear(scene: RaycastScene, start: np.ndarray, end: np.ndarray) -> bool:
+    """Nothing in the true world between ``start`` and the last 15 cm before ``end``."""
+    distance = float(np.linalg.norm(end - start))
+    hits = scene.cast(start[None], (end - start)[None], normals=False)
+    return bool(hits.range_m[0] > distance - 0.15)
+
+
 def mutual_dwells(
     events: list[dict[str, Any]],
     stops: dict[str, list[tuple[float, np.ndarray]]],
@@ -162,7 +188,7 @@ def mutual_dwells(
     """How many dwells of a timeline let their reference and mapper see each other's beacon:
     within the beacon's range, inside the scanner's field of view and outside its blind wedge,
     with a clear 3D line between scanner and beacon both ways."""
-    geometry = _Geometry(config, scene)
+    geometry = BeaconGeometry(config, scene)
     geometry.min_bearing = config.beacon.blind_wedge_rad / 2
     geometry.max_bearing = math.radians(config.scanner.field_of_view_deg / 2)
     count = 0
@@ -176,8 +202,8 @@ def mutual_dwells(
     return count
 
 
-def _mapper_candidates(
-    ref: np.ndarray, geometry: _Geometry, band: tuple[float, float]
+def mapper_candidates(
+    ref: np.ndarray, geometry: BeaconGeometry, band: tuple[float, float]
 ) -> list[np.ndarray]:
     """Mapper poses in the reference's front sectors, facing it at ±25°."""
     origin = geometry.scanner(ref)
@@ -221,7 +247,7 @@ def plan_leapfrog(
     auto = mission.auto
     band = (float(auto.mapper_distance_m[0]), float(auto.mapper_distance_m[1]))
     scene = RaycastScene(build_mesh(world, cylinder_segments=16))
-    geometry = _Geometry(config, scene)
+    geometry = BeaconGeometry(config, scene)
     names = mission.robot_names()
     poses = {
         r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])]) for r in mission.robots
@@ -243,7 +269,7 @@ def plan_leapfrog(
     )
     for pose in poses.values():
         coverage.add(pose)
-    route = _Route(space, reachable, [np.array(w, dtype=float) for w in auto.route])
+    route = Route(space, reachable, [np.array(w, dtype=float) for w in auto.route])
     steps: list[StepSpec] = []
     reference, mapper = names[0], names[1]
     for k in range(auto.stations):
@@ -266,7 +292,7 @@ def plan_leapfrog(
         current = poses[mapper]
         for _ in range(auto.scans_per_station):
             best, best_score = None, -math.inf
-            for candidate in _mapper_candidates(ref, geometry, band):
+            for candidate in mapper_candidates(ref, geometry, band):
                 if not space.is_free(candidate[:2]) or not reachable[space.cell(candidate[:2])]:
                     continue
                 spacing = 2 * config.robot.footprint_radius_m + 0.3
@@ -307,13 +333,38 @@ def plan_leapfrog(
     return steps
 
 
-class _Route:
+def grid_graph(cells_mask: np.ndarray, resolution_m: float) -> tuple[Any, np.ndarray]:
+    """The 8-connected graph of the cells of ``cells_mask`` (edge weights in metres) as a
+    sparse matrix, and the node number of every cell (−1 outside the mask)."""
+    from scipy.sparse import coo_matrix
+
+    h, w = cells_mask.shape
+    index = np.full((h, w), -1, dtype=np.int64)
+    cells = np.argwhere(cells_mask)
+    index[cells[:, 0], cells[:, 1]] = np.arange(len(cells))
+    rows, cols, weights = [], [], []
+    for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = cells
+        b = cells + np.array([dr, dc])
+        ok = (b[:, 0] >= 0) & (b[:, 0] < h) & (b[:, 1] >= 0) & (b[:, 1] < w)
+        a, b = a[ok], b[ok]
+        both = index[b[:, 0], b[:, 1]] >= 0
+        rows.append(index[a[both, 0], a[both, 1]])
+        cols.append(index[b[both, 0], b[both, 1]])
+        weights.append(np.full(both.sum(), math.hypot(dr, dc) * resolution_m))
+    graph = coo_matrix(
+        (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(len(cells), len(cells)),
+    ).tocsr()
+    return graph, index
+
+
+class Route:
     """Waypoints followed in order; distances are shortest paths through free space."""
 
     def __init__(
         self, space: FreeSpace, reachable: np.ndarray, waypoints: list[np.ndarray]
     ) -> None:
-        from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import dijkstra
 
         self.space = space
@@ -322,24 +373,9 @@ class _Route:
         self.fields: list[np.ndarray] = []
         if not waypoints:
             return
+        graph, index = grid_graph(reachable, space.resolution_m)
         h, w = reachable.shape
-        index = np.full((h, w), -1, dtype=np.int64)
         cells = np.argwhere(reachable)
-        index[cells[:, 0], cells[:, 1]] = np.arange(len(cells))
-        rows, cols, weights = [], [], []
-        for dr, dc in ((0, 1), (1, 0), (1, 1), (1, -1)):
-            a = cells
-            b = cells + np.array([dr, dc])
-            ok = (b[:, 0] >= 0) & (b[:, 0] < h) & (b[:, 1] >= 0) & (b[:, 1] < w)
-            a, b = a[ok], b[ok]
-            both = index[b[:, 0], b[:, 1]] >= 0
-            rows.append(index[a[both, 0], a[both, 1]])
-            cols.append(index[b[both, 0], b[both, 1]])
-            weights.append(np.full(both.sum(), math.hypot(dr, dc) * space.resolution_m))
-        graph = coo_matrix(
-            (np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
-            shape=(len(cells), len(cells)),
-        ).tocsr()
         for k, point in enumerate(waypoints):
             if not space.is_free(point) or not reachable[space.cell(point)]:
                 raise SensorError(
@@ -374,7 +410,7 @@ class _Route:
 
 
 def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverage: CoverageModel,
-                  geometry: _Geometry, band: tuple[float, float]) -> float:  # fmt: skip
+                  geometry: BeaconGeometry, band: tuple[float, float]) -> float:  # fmt: skip
     """The heading at which the reference's front sectors hold the most uncovered space;
     headings that keep the other robot's beacon in view (a mutual observation at the station)
     come first."""
@@ -382,7 +418,7 @@ def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverag
     for heading in np.radians(np.arange(0, 360, 15)):
         pose = np.array([ref[0], ref[1], heading])
         gain = 0 if geometry.mutual(pose, mapper, (0.5, 8.0)) else -1_000_000
-        for candidate in _mapper_candidates(pose, geometry, band)[::3]:
+        for candidate in mapper_candidates(pose, geometry, band)[::3]:
             if space.is_free(candidate[:2]):
                 gain = max(gain, coverage.gain(candidate))
         if gain > best_gain:

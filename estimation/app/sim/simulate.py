@@ -50,6 +50,9 @@ class SimulationResult:
     poses: dict[str, int]
     telegrams: dict[str, int]
     changed: list[str]
+    #: With the mission loop (``auto.planner: map``): why it stopped and its figures; the
+    #: result is written into ``out_dir/result``.
+    loop: dict[str, Any] | None = None
 
 
 def resolve_mission_world(mission: MissionSpec, mission_path: Path) -> Path:
@@ -81,6 +84,17 @@ def dwell_seconds(config: Config) -> float:
     return 1.5 * half_turn * (1 + config.simulation.motor_rate_jitter) + 1.0
 
 
+def odometry_noise(config: Config) -> OdometryNoise:
+    """The simulated odometry's error per leg, as configured."""
+    sim = config.simulation
+    return OdometryNoise(
+        sigma_m=sim.odometry_sigma_m,
+        sigma_per_m=sim.odometry_sigma_per_m,
+        sigma_rad=math.radians(sim.odometry_sigma_deg),
+        sigma_rad_per_rad=math.radians(sim.odometry_sigma_deg_per_rad),
+    )
+
+
 def run_simulation(
     mission_path: Path | str,
     out_dir: Path | str,
@@ -88,6 +102,7 @@ def run_simulation(
     overrides: dict[str, Any] | None = None,
     seed: int | None = None,
     progress: Callable[[str, float], None] | None = None,
+    status: Callable[[str], None] | None = None,
 ) -> SimulationResult:
     mission_path = Path(mission_path)
     check_replaceable(Path(out_dir), "dataset")  # before the work, not after it
@@ -99,6 +114,8 @@ def run_simulation(
         raise ConfigError(f"seed must be >= 0, got {seed}")
     space = robot_free_space(world, config)
 
+    if mission.plan == "auto" and mission.auto.planner == "map":
+        return _fly_loop(mission, config, world, space, seed, Path(out_dir), mission_path, status)
     if mission.plan == "auto":
         from estimation.app.sim.planning import plan_leapfrog
 
@@ -144,13 +161,7 @@ def run_simulation(
     def scenes(t: float) -> RaycastScene:
         return changed_scene if timeline.change_s is not None and t >= timeline.change_s else scene
 
-    sim = config.simulation
-    noise = OdometryNoise(
-        sigma_m=sim.odometry_sigma_m,
-        sigma_per_m=sim.odometry_sigma_per_m,
-        sigma_rad=math.radians(sim.odometry_sigma_deg),
-        sigma_rad_per_rad=math.radians(sim.odometry_sigma_deg_per_rad),
-    )
+    noise = odometry_noise(config)
     scanners = {name: simulated_scanner(config, np.random.default_rng([seed, 3, k]))
                 for k, name in enumerate(mission.robot_names())}  # fmt: skip
     with replace_directory(Path(out_dir), "dataset") as work:
@@ -179,3 +190,21 @@ def run_simulation(
         telegrams={n: r["telegrams"] for n, r in stats["robots"].items()},
         changed=[f"{c.name} {c.action}" for c in changes],
     )
+
+
+def _fly_loop(mission: MissionSpec, config: Config, world: World, space: FreeSpace, seed: int,
+              out_dir: Path, mission_path: Path,
+              status: Callable[[str], None] | None) -> SimulationResult:  # fmt: skip
+    """``plan: auto`` with the mission loop: estimation and planning during the mission."""
+    from estimation.app.mission.simulated import fly
+
+    with replace_directory(out_dir, "dataset") as work:
+        flown = fly(mission, config, world, space, seed, work, status=status)
+    report = flown.output.report
+    return SimulationResult(
+        out_dir=out_dir, mission=mission_path.stem, world=world.name, seed=seed,
+        duration_s=float(flown.loop.get("duration_s", 0.0)), steps=len(flown.steps),
+        poses={r: v["poses"] for r, v in report["robots"].items()},
+        telegrams={r: v["telegrams"] for r, v in report["robots"].items()},
+        changed=list(flown.loop["changed"]), loop={"stop_reason": flown.stop_reason, **flown.loop},
+    )  # fmt: skip

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from estimation.app.cli.main import app
 from estimation.app.config import Config, ConfigError
-from estimation.app.sim.planning import _Geometry
+from estimation.app.sim.planning import BeaconGeometry
 from estimation.app.sim.simulate import robot_free_space, run_simulation
 from sensors.atomic import replace_directory
 from sensors.errors import SensorError
@@ -163,7 +163,7 @@ def test_auto_plan_keeps_beacons_in_view(tmp_path: Path) -> None:
     spec = load_mission(tmp_path / "ds" / "mission.yaml")
     config = Config()
     world = load_world(tmp_path / "ds" / "world.yaml")
-    geometry = _Geometry(config, RaycastScene(build_mesh(world)))
+    geometry = BeaconGeometry(config, RaycastScene(build_mesh(world)))
     starts = {
         r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])]) for r in spec.robots
     }

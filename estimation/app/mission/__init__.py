@@ -1,0 +1,1 @@
+"""The mission loop: robots behind one interface, estimation and planning during the mission."""

@@ -1,0 +1,305 @@
+"""Next best views on the estimated map: where the leapfrog goes next (docs/design.md §13).
+
+Everything here reads the occupancy grid as estimated, never the true world. A view of that
+grid (:class:`MapView`) holds its floor columns at the robot's body height, the drivable space
+(known free floor, clear of obstacles and of what nobody has seen), the frontiers, and a 2D
+coverage model: what a scan would add is the unknown floor inside the scanner's wedge up to its
+range, occluded by obstacle columns. Beacon line of sight is tested on the 3D grid (unknown cells
+block it: a beacon behind what nobody has seen may be hidden).
+
+The explorer keeps the leapfrog of the paper: the reference turns in place to the heading from
+which it and a mapper around it see the most unknown space on the way to the nearest reachable
+frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
+so that both beacons are in view, that add the most unknown space and bring the pair closer to
+that frontier, less a cost for the path. Poses already taken are not taken again; a frontier
+the pair has failed to shrink from several stations in a row is given up.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimation.app.config import Config
+from estimation.app.sim.planning import BeaconGeometry, CoverageModel, grid_graph, mapper_candidates
+from mapping.errors import MapError
+from mapping.grid import OccupancyGrid
+from mapping.traversability import (
+    FloorMap,
+    Frontier,
+    drivable_space,
+    floor_map,
+    frontiers,
+    line_of_sight,
+)
+from sensors.sim.planner import FreeSpace
+
+__all__ = ["Explorer", "MapView", "ScanGoal"]
+
+#: Weights of a mapper pose's score, in floor cells: per metre of path driven, per metre still
+#: to go to the target frontier; a station heading from which the mapper sees the reference's
+#: beacon at once (a mutual observation that ties the turn) gains this many.
+_PATH_COST = 20.0
+_FRONTIER_COST = 100.0
+_STATION_TIE_BONUS = 150.0
+#: Two poses closer than this (m, rad) are the same pose.
+_SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
+#: A frontier whose distance did not shrink for this many stations is given up.
+_PATIENCE = 3
+_MIN_FRONTIER_CELLS = 5
+
+
+@dataclass(frozen=True)
+class ScanGoal:
+    """A pose for a robot to drive to, the path there (map frame), and why it was chosen."""
+
+    pose: np.ndarray  # (3,) x_m, y_m, yaw_rad
+    path: list[np.ndarray]
+    score: float
+
+
+class MapView:
+    """The estimated map as the planner sees it at one moment.
+
+    ``stood_xy`` (N, 2) are the places robots stood (their estimated stop poses): the floor
+    under a robot is free, the scanners cannot see it, and the other robots' scans put the
+    robot's own body there; within the footprint (plus a cell) nothing counts as an obstacle,
+    and within the footprint plus the margin nothing counts as unknown. Beacon lines of sight
+    ignore what the scans saw around those places (robot bodies and beacons)."""
+
+    def __init__(self, grid: OccupancyGrid, config: Config, stood_xy: np.ndarray | None = None,
+                 margin_m: float = 0.1) -> None:  # fmt: skip
+        robot = config.robot
+        self.grid = grid
+        self.radius_m = robot.footprint_radius_m
+        floor = floor_map(grid, body_z_m=(0.1, robot.body_height_m))
+        self.stood = np.zeros((0, 2)) if stood_xy is None else np.asarray(stood_xy).reshape(-1, 2)
+        if len(self.stood):
+            floor = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
+        self.floor: FloorMap = floor
+        # A robot's beacon sits ahead of its centre: ignore scans within reach of both.
+        self._ignore_m = config.robot.scanner_x_m + config.beacon.offset_m + 0.25
+        self.space: FreeSpace = drivable_space(
+            self.floor, robot_radius_m=self.radius_m, margin_m=margin_m
+        )
+        self.coverage = CoverageModel(
+            self.space, ~self.floor.obstacle, ~self.floor.unknown, self.floor.obstacle
+        )
+        self.geometry = BeaconGeometry(config, line_clear=self._clear)
+        self._graph: tuple[object, np.ndarray] | None = None
+
+    def _clear(self, start: np.ndarray, end: np.ndarray) -> bool:
+        try:
+            return line_of_sight(
+                self.grid, start, end, start_clearance_m=0.3, end_clearance_m=0.3,
+                unknown_blocks=True, ignore_xy=self.stood, ignore_radius_m=self._ignore_m,
+            )  # fmt: skip
+        except MapError:
+            return False
+
+    def free_near(self, xy: np.ndarray, reach_m: float = 0.6) -> np.ndarray | None:
+        """``xy`` if the robot may stand there, else the nearest drivable cell centre within
+        ``reach_m`` (an estimate a few centimetres off can put a robot beside the space)."""
+        if self.space.is_free(xy):
+            return np.asarray(xy, dtype=float)[:2]
+        row, col = self.space.cell(xy)
+        res = self.space.resolution_m
+        k = math.ceil(reach_m / res)
+        h, w = self.space.free.shape
+        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
+        cells = np.argwhere(self.space.free[r0:r1, c0:c1]) + np.array([r0, c0])
+        if not len(cells):
+            return None
+        centres = self.space.lower_xy + (cells[:, ::-1] + 0.5) * res
+        d = np.hypot(*(centres - np.asarray(xy)[:2]).T)
+        best = int(np.argmin(d))
+        return centres[best] if d[best] <= reach_m else None
+
+    def distances_from(self, sources_xy: list[np.ndarray]) -> np.ndarray:
+        """Shortest-path distance (m) through the drivable space from the nearest of
+        ``sources_xy`` to every cell (inf where unreachable)."""
+        from scipy.sparse.csgraph import dijkstra
+
+        if self._graph is None:
+            self._graph = grid_graph(self.space.free, self.space.resolution_m)
+        graph, index = self._graph
+        out = np.full(self.space.free.shape, np.inf)
+        nodes = sorted({int(index[self.space.cell(p)]) for p in sources_xy
+                        if self.space.is_free(p)})  # fmt: skip
+        if not nodes:
+            return out
+        distance = dijkstra(graph, directed=False, indices=nodes, min_only=True)
+        cells = np.argwhere(index >= 0)
+        out[cells[:, 0], cells[:, 1]] = distance
+        return out
+
+    def at(self, field_: np.ndarray, xy: np.ndarray) -> float:
+        row, col = self.space.cell(xy)
+        h, w = field_.shape
+        return float(field_[row, col]) if 0 <= row < h and 0 <= col < w else math.inf
+
+
+def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
+                       margin_m: float) -> FloorMap:  # fmt: skip
+    """The floor map with no obstacle within the footprint (plus a cell) of each place a robot
+    stood, and nothing unknown within the footprint plus the margin (see :class:`MapView`)."""
+    res = floor.resolution_m
+    h, w = floor.shape
+    body = np.zeros((h, w), dtype=bool)
+    around = np.zeros((h, w), dtype=bool)
+    k = math.ceil((radius_m + margin_m) / res) + 2
+    for x, y in stood:
+        row = math.floor((y - floor.lower_xy[1]) / res)
+        col = math.floor((x - floor.lower_xy[0]) / res)
+        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        ys = floor.lower_xy[1] + (np.arange(r0, r1) + 0.5) * res
+        xs = floor.lower_xy[0] + (np.arange(c0, c1) + 0.5) * res
+        d = np.hypot(xs[None, :] - x, ys[:, None] - y)
+        body[r0:r1, c0:c1] |= d <= radius_m + res
+        around[r0:r1, c0:c1] |= d <= radius_m + margin_m + res
+    obstacle = floor.obstacle & ~body
+    free = floor.free | body | (around & ~obstacle)
+    return FloorMap(obstacle, free, floor.lower_xy, res)
+
+
+@dataclass
+class _Target:
+    centroid: np.ndarray
+    best_m: float
+    stale: int = 0
+
+
+@dataclass
+class Explorer:
+    """The leapfrog's choices on the estimated map (see the module's docstring)."""
+
+    config: Config
+    band: tuple[float, float]
+    taken: list[np.ndarray] = field(default_factory=list)  # every pose any robot took
+    given_up: list[np.ndarray] = field(default_factory=list)  # frontier centroids
+    target: _Target | None = None
+
+    def _taken(self, pose: np.ndarray) -> bool:
+        return any(
+            math.dist(pose[:2], p[:2]) < _SAME_M
+            and abs(math.remainder(pose[2] - p[2], 2 * math.pi)) < _SAME_RAD
+            for p in self.taken
+        )
+
+    def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Frontier | None:
+        """The reachable frontier nearest (by path) to any of ``from_xy``, not given up."""
+        starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
+        if not starts:
+            return None
+        reach = view.distances_from(starts)
+        best, best_m = None, math.inf
+        for frontier in frontiers(view.floor, view.space, robot_radius_m=view.radius_m,
+                                  min_cells=_MIN_FRONTIER_CELLS):  # fmt: skip
+            if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
+                continue
+            d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
+            if d < best_m:
+                best, best_m = frontier, d
+        return best
+
+    def progress(self, frontier: Frontier | None, distance_m: float) -> None:
+        """Track the target frontier across stations; give it up when it stops shrinking."""
+        if frontier is None:
+            self.target = None
+            return
+        t = self.target
+        if t is None or math.dist(t.centroid, frontier.centroid_xy) > 1.5:
+            self.target = _Target(frontier.centroid_xy.copy(), distance_m)
+            return
+        if distance_m < t.best_m - 0.3:
+            t.best_m, t.stale = distance_m, 0
+        else:
+            t.stale += 1
+        t.centroid = frontier.centroid_xy.copy()
+        if t.stale >= _PATIENCE:
+            self.given_up.append(t.centroid.copy())
+            self.target = None
+
+    def _goal_field(self, view: MapView, frontier: Frontier | None) -> np.ndarray:
+        if frontier is None:
+            return np.zeros(view.space.free.shape)
+        centres = view.floor.lower_xy + (frontier.cells[:, ::-1] + 0.5) * view.floor.resolution_m
+        return view.distances_from(list(centres))
+
+    def _candidates(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
+                    others: list[np.ndarray], reachable: np.ndarray,
+                    exclude: list[np.ndarray]) -> list[np.ndarray]:  # fmt: skip
+        spacing = 2 * self.config.robot.footprint_radius_m + 0.3
+        out = []
+        for candidate in mapper_candidates(reference, view.geometry, self.band):
+            xy = candidate[:2]
+            if not view.space.is_free(xy) or not np.isfinite(view.at(reachable, xy)):
+                continue
+            if any(math.dist(xy, p[:2]) < spacing for p in others):
+                continue
+            if self._taken(candidate) or any(math.dist(xy, p[:2]) < _SAME_M for p in exclude):
+                continue
+            if not view.geometry.mutual(reference, candidate, self.band):
+                continue
+            out.append(candidate)
+        return out
+
+    def heading(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
+                others: list[np.ndarray], frontier: Frontier | None) -> float | None:  # fmt: skip
+        """The reference's heading for its next station, or None if from no heading a
+        mapper pose around it would see its beacon."""
+        start = view.free_near(mapper[:2])
+        if start is None:
+            return None
+        reachable = view.distances_from([start])
+        goal = self._goal_field(view, frontier)
+        best, best_score = None, -math.inf
+        for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
+            pose = np.array([reference[0], reference[1], heading])
+            candidates = self._candidates(view, pose, mapper, others, reachable, [])
+            if not candidates:
+                continue
+            values = [self._value(view, c, reachable, goal) for c in candidates[::2]]
+            score = max(values) + view.coverage.gain(pose)
+            if view.geometry.mutual(pose, mapper, (0.5, self.config.beacon.max_range_m)):
+                score += _STATION_TIE_BONUS
+            if score > best_score:
+                best, best_score = float(heading), score
+        return best
+
+    def _value(self, view: MapView, candidate: np.ndarray, reachable: np.ndarray,
+               goal: np.ndarray) -> float:  # fmt: skip
+        to_goal = view.at(goal, candidate[:2])
+        to_goal = to_goal if np.isfinite(to_goal) else 0.0
+        return (
+            view.coverage.gain(candidate)
+            - _PATH_COST * view.at(reachable, candidate[:2])
+            - _FRONTIER_COST * to_goal
+        )
+
+    def scan_pose(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
+                  others: list[np.ndarray], frontier: Frontier | None,
+                  exclude: list[np.ndarray]) -> ScanGoal | None:  # fmt: skip
+        """The mapper's next scan pose around the reference and its path, or None."""
+        start = view.free_near(mapper[:2])
+        if start is None:
+            return None
+        reachable = view.distances_from([start])
+        goal = self._goal_field(view, frontier)
+        ranked = sorted(
+            ((self._value(view, c, reachable, goal), k, c) for k, c in enumerate(
+                self._candidates(view, reference, mapper, others, reachable, exclude))),
+            key=lambda item: (-item[0], item[1]),
+        )  # fmt: skip
+        for score, _, candidate in ranked[:5]:
+            path = view.space.path(start, candidate[:2])
+            if path is None:
+                continue
+            if math.dist(start, mapper[:2]) > 1e-6:
+                path = [np.asarray(mapper[:2], dtype=float), *path]
+            return ScanGoal(candidate, path, float(score))
+        return None

@@ -1,0 +1,500 @@
+"""The mission loop: estimate during the mission, plan on the map as estimated (docs/design.md
+§13, the paper's Fig. 2).
+
+After every dwell the robots' recordings reach the loop through the :class:`Fleet` interface:
+the raw LMS bytes are decoded as they arrive (``LmsDecoder``), odometry is taken as it is logged,
+and the mission's event entries become estimator events through the same ``EventMaker`` that
+``batch`` runs over a recorded dataset. iSAM2 takes each event; the sweeps are fused into the
+global grid at their estimated poses (re-fused when the estimate of a fused pose moved); the
+next goals are chosen on that grid (:mod:`estimation.app.mission.explore`). When a station's
+local map is complete, its global localization runs in a worker process while the next local map
+is made, and enters the graph when it is ready.
+
+Whatever the loop receives is also written, as it comes, into a dataset of the usual shape; at
+the end the result is written from that dataset by the same finish as ``coopmap isam`` (the
+searches on the batch optimum of all events, iSAM2 settled), so ``batch`` or ``isam`` on the
+recorded dataset reproduce the loop's final estimate. The report adds the loop's own figures:
+the work per dwell, each concurrent localization against the local map it ran beside, the
+retried observations and refused goals, and where the exploration stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimation import __version__
+from estimation.app.config import Config
+from estimation.app.dataset import (
+    EventMaker,
+    LmsDecoder,
+    Sweep,
+    stations_of,
+    sweeps_before_changes,
+)
+from estimation.app.mission.explore import Explorer, MapView
+from estimation.app.mission.fleet import Fleet, Goal
+from estimation.app.mission.localizer import ConcurrentLocalizer
+from estimation.app.pipeline import finish_isam, isam_options, prepare
+from estimation.app.results import BatchOutput
+from estimation.app.rig import T_robot_scanner, scan_limits, station_params
+from estimation.posegraph.keys import pose_key
+from estimation.posegraph.smoother import IncrementalSmoother
+from estimation.search.stations import records_json
+from mapping.errors import MapError
+from mapping.fusion import Scan as MapScan
+from mapping.fusion import fuse_scans
+from mapping.grid import GridParams, OccupancyGrid
+from sensors.atomic import write_text_atomic
+from sensors.geometry import se2
+from sensors.geometry.frames import pose2_matrix
+from sensors.lms200.capture import CaptureWriter
+from sensors.sim.mission import MissionSpec, StepSpec, mission_to_yaml
+from sensors.trajio import as_logged, write_tum
+
+__all__ = ["EstimatedMap", "LoopResult", "MissionLoop"]
+
+Progress = Callable[[str], None]
+#: A fused sweep whose pose estimate moved more than this (m, rad) gets the map re-fused.
+_REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
+#: A planned mutual observation that failed is retried from this many other poses.
+_RETRIES = 2
+
+
+class EstimatedMap:
+    """The global grid as the loop estimates it, from the sweeps at their estimated poses."""
+
+    def __init__(self, config: Config) -> None:
+        self.params = GridParams(**config.grid.model_dump())
+        self.mount = T_robot_scanner(config)
+        self.grid = OccupancyGrid(self.params)
+        self.fused: dict[int, np.ndarray] = {}  # id(sweep) → the pose it was fused at
+        self.refusions = 0
+
+    def update(self, sweeps: list[Sweep], estimate: dict[int, np.ndarray]) -> None:
+        usable = [s for s in sweeps if pose_key(s.robot, s.index) in estimate]
+        moved = any(
+            id(s) in self.fused and _moved(self.fused[id(s)], estimate[pose_key(s.robot, s.index)])
+            for s in usable
+        )
+        if moved:
+            self.grid = OccupancyGrid(self.params)
+            self.fused = {}
+            self.refusions += 1
+        new = [s for s in usable if id(s) not in self.fused]
+        if not new:
+            return
+        poses = [estimate[pose_key(s.robot, s.index)] for s in new]
+        fuse_scans(
+            [MapScan(s.scan.points_scanner) for s in new],
+            np.stack([pose2_matrix(*p) @ self.mount for p in poses]),
+            self.params,
+            self.grid,
+        )
+        for sweep, pose in zip(new, poses, strict=True):
+            self.fused[id(sweep)] = pose.copy()
+
+
+def _moved(a: np.ndarray, b: np.ndarray) -> bool:
+    return (
+        math.hypot(a[0] - b[0], a[1] - b[1]) > _REFUSE_M
+        or abs(math.remainder(a[2] - b[2], 2 * math.pi)) > _REFUSE_RAD
+    )
+
+
+@dataclass
+class LoopResult:
+    """A finished mission: its result folder's contents and the loop's own figures."""
+
+    output: BatchOutput
+    steps: list[StepSpec]
+    stop_reason: str
+    loop: dict[str, Any]
+
+
+@dataclass
+class _Station:
+    robot: str
+    index: int
+    started_s: float
+
+
+@dataclass
+class MissionLoop:
+    """One mission, run on the estimated state (see the module's docstring)."""
+
+    fleet: Fleet
+    mission: MissionSpec
+    config: Config
+    work: Path
+    concurrent: bool = True
+    progress: Progress | None = None
+    entries: list[dict[str, Any]] = field(default_factory=list)
+    steps: list[StepSpec] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        config, fleet = self.config, self.fleet
+        self.robots = list(fleet.robots)
+        limits = scan_limits(config)
+        self.decoders = {
+            r: LmsDecoder(config.scanner.measuring_mode, limits, fleet.capture_header(r))
+            for r in self.robots
+        }
+        self.writers: dict[str, CaptureWriter] = {}
+        for r in self.robots:
+            capture = self.work / "robots" / r / "lms.cap"
+            capture.parent.mkdir(parents=True, exist_ok=True)
+            self.writers[r] = CaptureWriter(capture, fleet.capture_header(r))
+        self.odometry: dict[str, tuple[np.ndarray, np.ndarray]] = {
+            r: (np.zeros(0), np.zeros((0, 3))) for r in self.robots
+        }
+        self.maker = EventMaker(config, self.robots, fleet.starts, self.odometry)
+        self.smoother = IncrementalSmoother(**isam_options(config))
+        for event in self.maker.events:  # the gauge
+            self.smoother.add(event)
+        self.map = EstimatedMap(config)
+        self.localizer = ConcurrentLocalizer(station_params(config), self.concurrent)
+        self.estimate: dict[int, np.ndarray] = {}
+        self.index = dict.fromkeys(self.robots, 0)
+        self.now_s = 0.0
+        self._fed = 0
+        self.work_s: list[float] = []
+        self.localizations: list[dict[str, Any]] = []
+        self.retries: list[str] = []
+        self.refused: list[str] = []
+        self.unobserved: list[str] = []
+        self.given_up: list[list[float]] = []
+        self.changed: list[str] = []
+
+    # -- what the robots recorded -------------------------------------------------------------
+
+    def _sync(self) -> None:
+        got = self.fleet.receive()
+        for robot in self.robots:
+            decoder, writer = self.decoders[robot], self.writers[robot]
+            for stamp, data in got.lms.get(robot, []):
+                writer.write(stamp, data)
+                decoder.feed(stamp, data)
+            times, poses = got.odometry.get(robot, (np.zeros(0), np.zeros((0, 3))))
+            if len(times):
+                times, poses = as_logged(times, poses, decimals=6)
+                old_t, old_p = self.odometry[robot]
+                self.odometry[robot] = (np.concatenate([old_t, times]), np.vstack([old_p, poses]))
+        self.entries += got.events
+        for entry in got.events:
+            if entry["event"] == "move":
+                self.index[entry["robot"]] = int(entry["to_index"])
+        streams = {r: d.stream() for r, d in self.decoders.items()}
+        new = []
+        for number in range(self._fed, len(self.entries)):
+            new += self.maker.feed(number, self.entries[number], streams)
+        self._fed = len(self.entries)
+        for event in new:
+            self.smoother.add(event)
+        self.now_s = got.now_s
+        self._collect(wait=False)
+        self.estimate = self.smoother.estimate()
+        self.map.update(sweeps_before_changes(self.entries, self.maker.sweeps), self.estimate)
+
+    def _mutual_factors(self) -> int:
+        return sum(1 for f in self.smoother.builder.factors if f.kind == "mutual")
+
+    def dwell(self, **fields: Any) -> bool:
+        """Every robot dwells for a sweep; the loop takes in what they recorded. True if the
+        dwell's reference and mapper gave an accepted mutual observation."""
+        self.fleet.dwell(**fields)
+        started = time.perf_counter()
+        before = self._mutual_factors()
+        self._sync()
+        self.work_s.append(time.perf_counter() - started)
+        return self._mutual_factors() > before
+
+    def pose(self, robot: str) -> np.ndarray:
+        """Where the loop believes ``robot`` stands now: its estimate, or, before its first
+        fix, its declared start moved by its odometry."""
+        key = pose_key(robot, self.index[robot])
+        if key in self.estimate:
+            return self.estimate[key]
+        times, poses = self.odometry[robot]
+        if not len(times):
+            return self.fleet.starts[robot]
+        return se2.compose(self.fleet.starts[robot], se2.between(poses[0], poses[-1]))
+
+    # -- concurrent global localization --------------------------------------------------------
+
+    def _station_done(self, station: _Station) -> None:
+        """A station's local map is complete: localize it while the mission goes on."""
+        self._collect(wait=True)
+        key = pose_key(station.robot, station.index)
+        if key not in self.estimate:
+            return
+        sweeps = sweeps_before_changes(self.entries, self.maker.sweeps)
+        stations = [s for s in stations_of(self.entries, sweeps) if s.key in self.estimate]
+        self.localizer.submit(stations, dict(self.estimate), list(self.smoother.builder.factors),
+                              key, self.now_s)  # fmt: skip
+
+    def _collect(self, wait: bool) -> None:
+        done = self.localizer.collect(self.now_s, wait=wait)
+        if done is None:
+            return
+        _, submitted_s, collected_s = self.localizer.done[-1]
+        for event in done.events:
+            self.smoother.add(event)
+        if done.events:
+            self.estimate = self.smoother.estimate()
+        self.localizations.append({
+            "station": done.station, "seconds": round(done.seconds, 3),
+            "factors": len(done.events), "searches": len(done.records),
+            "submitted_mission_s": round(submitted_s, 3),
+            "collected_mission_s": round(collected_s, 3),
+            "waited": wait, "records": records_json(done.records),
+        })  # fmt: skip
+
+    # -- goals ---------------------------------------------------------------------------------
+
+    def go(self, robot: str, pose: np.ndarray, path: list[np.ndarray] | None) -> bool:
+        """Send one goal; ``path`` None: an absolute goal of an explicit plan."""
+        believed = None if path is None else tuple(float(v) for v in self.pose(robot))
+        status = self.fleet.move(Goal(
+            robot, (float(pose[0]), float(pose[1]), float(pose[2])),
+            tuple((float(p[0]), float(p[1])) for p in path or []),
+            believed,  # type: ignore[arg-type]
+        ))  # fmt: skip
+        if not status.ok:
+            self.refused.append(status.reason or f"robot {robot}: goal refused")
+        else:
+            self.index[robot] = status.index
+        return status.ok
+
+    # -- the mission ---------------------------------------------------------------------------
+
+    def run(self) -> str:
+        """Fly the mission's plan (explicit steps, or exploration); returns why it stopped."""
+        try:
+            if isinstance(self.mission.plan, list):
+                reason = self._scripted(self.mission.plan)
+            else:
+                reason = self._explore()
+            self._collect(wait=True)
+            if self.mission.changes is not None:
+                self.changed = self.fleet.change_world(self.mission.changes)
+                self.dwell(phase="relocalize", step=len(self.steps))
+        finally:
+            self.localizer.close()
+        return reason
+
+    def _scripted(self, plan: list[StepSpec]) -> str:
+        self.dwell(phase="start", reference=plan[0].reference, mapper=plan[0].mapper, step=-1)
+        for k, step in enumerate(plan):
+            self.fleet.log("roles", reference=step.reference, mapper=step.mapper, step=k)
+            station = _Station(step.reference, self.index[step.reference], self.now_s)
+            if step.at is not None:
+                target = np.array([step.at[0], step.at[1], math.radians(step.at[2])])
+                before = self.index[step.reference]
+                if self.go(step.reference, target, None) and self.index[step.reference] != before:
+                    station = _Station(step.reference, self.index[step.reference], self.now_s)
+                    self.dwell(phase="station", reference=step.reference, mapper=step.mapper,
+                               step=k)  # fmt: skip
+            for scan in step.scans:
+                target = np.array([scan[0], scan[1], math.radians(scan[2])])
+                if self.go(step.mapper, target, None):
+                    self.dwell(phase="mapping", reference=step.reference, mapper=step.mapper,
+                               step=k)  # fmt: skip
+            self.steps.append(step)
+            self._station_done(station)
+        return "plan flown"
+
+    def _explore(self) -> str:
+        auto = self.mission.auto
+        explorer = Explorer(self.config, (auto.mapper_distance_m[0], auto.mapper_distance_m[1]))
+        names = self.robots
+        reference, mapper = names[0], names[1]
+        self.dwell(phase="start", reference=reference, mapper=mapper, step=-1)
+        for r in names:
+            explorer.taken.append(self.pose(r))
+        reason = f"station budget ({auto.stations}) spent"
+        for k in range(auto.stations):
+            self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
+            view = self._view()
+            if view is None:
+                reason = "the estimated map holds no floor"
+                break
+            ref_pose, map_pose = self.pose(reference), self.pose(mapper)
+            others = {n: self.pose(n) for n in names}
+            frontier = explorer.frontier(view, [ref_pose[:2], map_pose[:2]])
+            if frontier is None and k > 0:
+                reason = "no reachable frontier left"
+                break
+            at: list[float] | None = None
+            if k > 0:
+                heading = explorer.heading(
+                    view, ref_pose, map_pose, [p for n, p in others.items() if n != mapper],
+                    frontier,
+                )  # fmt: skip
+                if heading is None:
+                    reason = f"no mapper pose around robot {reference} sees its beacon"
+                    break
+                target = np.array([ref_pose[0], ref_pose[1], heading])
+                turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
+                if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
+                    at = _as_spec(target)
+                    self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
+                    explorer.taken.append(self.pose(reference))
+            station = _Station(reference, self.index[reference], self.now_s)
+            scans: list[list[float]] = []
+            for _ in range(auto.scans_per_station):
+                if not self._scan(explorer, reference, mapper, frontier, scans):
+                    break
+            if not scans:
+                if k == 0:
+                    reason = f"no mapper pose around robot {reference} at the start sees its beacon"
+                break
+            self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
+            self._station_done(station)
+            view = self._view()
+            if view is not None and frontier is not None:
+                reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
+                cells = frontier.cells
+                explorer.progress(frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])))
+            reference, mapper = mapper, names[(names.index(mapper) + 1) % len(names)]
+            if mapper == reference:
+                mapper = names[(names.index(reference) + 1) % len(names)]
+        self.given_up = [list(map(float, g)) for g in explorer.given_up]
+        return reason
+
+    def _scan(self, explorer: Explorer, reference: str, mapper: str, frontier: Any,
+              scans: list[list[float]]) -> bool:  # fmt: skip
+        """One scan pose of the mapper around the reference, retried from other poses when
+        the mutual observation fails; False when no pose is left."""
+        failed: list[np.ndarray] = []
+        for attempt in range(_RETRIES + 1):
+            view = self._view()
+            if view is None:
+                return False
+            others = [self.pose(n) for n in self.robots if n != mapper]
+            goal = explorer.scan_pose(view, self.pose(reference), self.pose(mapper), others,
+                                      frontier, failed)  # fmt: skip
+            if goal is None:
+                return False
+            if not self.go(mapper, goal.pose, goal.path):
+                failed.append(goal.pose)
+                continue
+            explorer.taken.append(goal.pose)
+            seen = self.dwell(phase="mapping", reference=reference, mapper=mapper,
+                              step=len(self.steps))  # fmt: skip
+            scans.append(_as_spec(goal.pose))
+            if seen:
+                return True
+            failed.append(goal.pose)
+            label = f"{mapper}{self.index[mapper]} around {reference}{self.index[reference]}"
+            if attempt < _RETRIES:
+                self.retries.append(label)
+            else:
+                self.unobserved.append(label)
+        return True
+
+    def _view(self) -> MapView | None:
+        stood = [self.estimate[pose_key(r, i)][:2] for r in self.robots
+                 for i in range(self.index[r] + 1) if pose_key(r, i) in self.estimate]  # fmt: skip
+        stood += [self.pose(r)[:2] for r in self.robots]
+        try:
+            return MapView(self.map.grid, self.config, np.array(stood))
+        except MapError:
+            return None
+
+    # -- the record ----------------------------------------------------------------------------
+
+    def record(self) -> dict[str, Any]:
+        """Close the dataset: captures, odometry, events, the mission as flown, the fleet's
+        own files. Returns the fleet's counts."""
+        for writer in self.writers.values():
+            writer.close()
+        for robot, (times, poses) in self.odometry.items():
+            write_tum(self.work / "robots" / robot / "odometry.tum", times, poses, decimals=6)
+        lines = [json.dumps(e, separators=(",", ":")) for e in self.entries]
+        write_text_atomic(self.work / "events.jsonl", "\n".join(lines) + "\n")
+        steps = self.steps or []
+        header = f"# effective mission; coopmap {__version__}, seed {self.mission.seed}\n"
+        write_text_atomic(
+            self.work / "mission.yaml",
+            header + mission_to_yaml(self.mission, steps, self.config.model_dump(mode="json")),
+        )
+        return self.fleet.finish(self.work)
+
+    def discard(self) -> None:
+        for writer in self.writers.values():
+            writer.discard()
+
+    def figures(self, stop_reason: str, fleet_counts: dict[str, Any]) -> dict[str, Any]:
+        work = np.array(self.work_s) if self.work_s else np.zeros(1)
+        next_map = self._next_map_seconds()
+        localizations = []
+        for item in self.localizations:
+            budget = next_map.get(item["station"])
+            in_time = budget is None or item["seconds"] <= budget
+            localizations.append({**item, "next_map_mission_s": budget, "in_time": in_time})
+        return {
+            "stop_reason": stop_reason,
+            "duration_s": self.now_s,
+            "changed": self.changed,
+            "dwells": len(self.work_s),
+            "work_per_dwell_s": {"median": float(np.median(work)),
+                                 "p99": float(np.percentile(work, 99)), "max": float(work.max())},
+            "map_refusions": self.map.refusions,
+            "concurrent_localization": localizations,
+            "retried_observations": self.retries,
+            "unobserved_scans": self.unobserved,
+            "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
+            "given_up_frontiers": self.given_up,
+        }  # fmt: skip
+
+    def _next_map_seconds(self) -> dict[str, float]:
+        """Per station: how long (mission time) the next local map took to make — the time
+        its concurrent global localization had."""
+        starts = [
+            (f"{s['reference']}{s['poses'][s['reference']]}", float(s["t_s"]))
+            for s in self.entries
+            if s["event"] == "dwell" and s.get("reference") and s.get("phase") != "relocalize"
+        ]
+        order: list[tuple[str, float]] = []
+        for label, t in starts:
+            if not order or order[-1][0] != label:
+                order.append((label, t))
+        end = float(self.entries[-1].get("end_s", self.entries[-1]["t_s"])) if self.entries else 0
+        out = {}
+        for n, (label, _) in enumerate(order):
+            begin = order[n + 1][1] if n + 1 < len(order) else end
+            finish = order[n + 2][1] if n + 2 < len(order) else end
+            out[label] = finish - begin
+        return out
+
+    def finish(self, out: Path, stop_reason: str) -> LoopResult:
+        """Write the result from the recorded dataset (as ``coopmap isam`` would)."""
+        counts = self.record()
+        loop = self.figures(stop_reason, counts)
+        prepared = prepare(self.work, None, self.progress)
+        clock = time.perf_counter()
+        smoother = IncrementalSmoother(**isam_options(prepared.dataset.config))
+        for event in prepared.events:
+            smoother.add(event)
+        online = dict(self.estimate)
+        output = finish_isam(prepared, smoother, out, optimize_s=time.perf_counter() - clock,
+                             progress=self.progress, report={"mission_loop": loop})  # fmt: skip
+        final = {pose_key(r, i): p for r, poses in output.poses.items() for i, p in poses.items()}
+        shared = [k for k in final if k in online]
+        loop["online_vs_final_m"] = max(
+            (math.hypot(*(final[k][:2] - online[k][:2])) for k in shared), default=0.0
+        )
+        return LoopResult(output, self.steps, stop_reason, loop)
+
+
+def _as_spec(pose: np.ndarray) -> list[float]:
+    return [round(float(pose[0]), 3), round(float(pose[1]), 3),
+            round(math.degrees(math.remainder(float(pose[2]), 2 * math.pi)), 2)]  # fmt: skip

@@ -1,0 +1,49 @@
+"""A simulated mission flown by the mission loop (``plan: auto`` with ``auto.planner: map``).
+
+The simulator's robots (:class:`~estimation.app.mission.fleet.SimulatedFleet`) move through the
+true world; the loop sees only what they record and plans on its estimated map. The dataset is
+written into ``work`` as the mission goes, and the result into ``work/result``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from estimation.app.config import Config
+from estimation.app.mission.fleet import SimulatedFleet
+from estimation.app.mission.loop import LoopResult, MissionLoop
+from sensors.sim.mission import MissionSpec
+from sensors.sim.planner import FreeSpace
+from sensors.sim.world import World
+
+__all__ = ["fly"]
+
+
+def fly(
+    mission: MissionSpec,
+    config: Config,
+    world: World,
+    space: FreeSpace,
+    seed: int,
+    work: Path,
+    *,
+    concurrent: bool = True,
+    status: Callable[[str], None] | None = None,
+) -> LoopResult:
+    """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``."""
+    starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
+              for r in mission.robots}  # fmt: skip
+    fleet = SimulatedFleet(world, space, config, starts, seed)
+    loop = MissionLoop(fleet, mission, config, work, concurrent=concurrent, progress=status)
+    try:
+        reason = loop.run()
+    except BaseException:
+        loop.discard()
+        fleet.close()
+        raise
+    fleet.close()
+    return loop.finish(work / "result", reason)
