@@ -109,11 +109,24 @@ def frontiers(
     robot_radius_m: float,
     from_xy: np.ndarray | tuple[float, float] | None = None,
     min_cells: int = 3,
+    min_unknown_m2: float = 0.0,
 ) -> list[Frontier]:
     """Frontiers of the drivable space, largest first; with ``from_xy`` only those the robot
-    standing there can reach. Frontiers of fewer than ``min_cells`` cells are dropped."""
+    standing there can reach. Frontiers of fewer than ``min_cells`` cells are dropped, and
+    with ``min_unknown_m2`` those that border only unknown patches smaller than that (the
+    shadow behind a desk, not the room beyond a door; unknown space that reaches the map's
+    border is never small)."""
     res = floor.resolution_m
-    near_unknown = _distance_to(floor.unknown, res) <= robot_radius_m + 1.5 * res
+    unknown = floor.unknown
+    if min_unknown_m2 > 0:
+        labels, count = ndimage.label(unknown, structure=np.ones((3, 3)))
+        sizes = np.bincount(labels.ravel(), minlength=count + 1) * res * res
+        large = sizes >= min_unknown_m2
+        border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+        large[border] = True
+        large[0] = False
+        unknown = large[labels]
+    near_unknown = _distance_to(unknown, res) <= robot_radius_m + 1.5 * res
     edge = space.free & near_unknown
     if from_xy is not None:
         if not space.is_free(from_xy):

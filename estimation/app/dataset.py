@@ -1,11 +1,9 @@
-"""A recorded dataset (docs/dataset.md), read and turned into the estimator's event stream.
+"""A recorded dataset (docs/dataset.md), read: the mission, its event log, the robots' streams.
 
 Per robot, the raw LMS bytes are decoded with the real parser; every dwell (all robots still)
 yields one full sweep per robot — the mirror's motor rate and phase estimated from the arm and
-edge-on signatures inside that dwell — converted to 3D points, in which the beacons are found.
-The dataset's event log becomes the estimator's event stream: a gauge prior on the first robot's
-start, odometry between each robot's stops, and the mutual observations of every dwell between
-its reference and mapper (gated by s1/s2 in the graph builder).
+edge-on signatures inside that dwell — converted to 3D points, in which the beacons are found
+(:mod:`estimation.app.events` turns all this into the estimator's event stream).
 """
 
 from __future__ import annotations
@@ -20,33 +18,24 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config, ConfigError, config_from_mapping
-from estimation.app.rig import T_robot_scanner, beacon_parameters, graph_settings, mirror_geometry
-from estimation.posegraph.events import Event, Move, Observe, Start
-from estimation.posegraph.graph import GraphBuilder
-from estimation.posegraph.keys import pose_key
+from estimation.app.rig import mirror_geometry
 from estimation.search.stations import Dwell, Station, View
 from sensors.errors import SensorError
-from sensors.geometry import se2
-from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureReader
 from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
 from sensors.lms200.protocol.scan import Scan, decode_scan
 from sensors.lms200.protocol.stream import StreamParser, Telegram
 from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
-from sensors.scan3d.beacon import BeaconDetection, detect_beacons
+from sensors.scan3d.beacon import BeaconDetection
 from sensors.scan3d.mirror import Scan3D, ScanClock, assemble_sweeps, estimate_mirror
 from sensors.trajio import read_tum
 from sensors.yamlio import merge_mappings, read_text_file, read_yaml_mapping
 
 __all__ = [
-    "Counts",
     "Dataset",
-    "EventMaker",
-    "EventStream",
     "LmsDecoder",
     "RobotStream",
     "Sweep",
-    "build_events",
     "decode_robot",
     "load_dataset",
     "mapping_sweeps",
@@ -371,215 +360,6 @@ def sweep_in(
     if best.scans < 0.75 * expected:
         return None, f"sweep incomplete ({best.scans} of ~{expected:.0f} scans)"
     return best, None
-
-
-def _pose_at(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
-    yaw = np.unwrap(poses[:, 2])
-    return np.array(
-        [
-            np.interp(t, stamps, poses[:, 0]),
-            np.interp(t, stamps, poses[:, 1]),
-            np.interp(t, stamps, yaw),
-        ]
-    )
-
-
-def _choose(
-    detections: list[BeaconDetection], predicted: tuple[float, float] | None
-) -> BeaconDetection | None:
-    """The detection that is the other robot's beacon: nearest the prediction, or the only one."""
-    if not detections:
-        return None
-    if predicted is None:
-        return detections[0] if len(detections) == 1 else max(detections, key=lambda d: d.quality)
-    a, alpha = predicted
-    return min(
-        detections,
-        key=lambda d: math.hypot(
-            d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi)
-        ),
-    )
-
-
-def _predict(
-    builder: GraphBuilder, observer: int, observed: int, config: Config
-) -> tuple[float, float] | None:
-    """Range and bearing, in the observer's scanner frame, of the observed robot's beacon as the
-    estimate so far places them (in the plane: heights do not enter range and bearing)."""
-    guesses = builder.guesses
-    if observer not in guesses or observed not in guesses:
-        return None
-    T_a = pose2_matrix(*guesses[observer]) @ T_robot_scanner(config, planar=True)
-    beacon = pose2_matrix(*guesses[observed]) @ np.array(
-        [config.robot.scanner_x_m + config.beacon.offset_m, 0, 0, 1]
-    )
-    local = np.linalg.inv(T_a) @ beacon
-    return float(math.hypot(local[0], local[1])), float(math.atan2(local[1], local[0]))
-
-
-@dataclass(frozen=True)
-class Counts:
-    """What the event stream made of the dataset's dwells."""
-
-    dwells: int
-    observations: int
-    missing_sweeps: tuple[str, ...]  # "a3 (dwell 7): why"
-    unseen: tuple[str, ...]  # "a3–b4": a pair whose beacons were not both found
-    moves_before_first_fix: int  # odometry held back until its robot was anchored
-
-
-@dataclass(frozen=True)
-class EventStream:
-    """The estimator's event stream of a dataset, the sweeps, the counts, and the graph builder
-    that consumed the events (its guesses are the estimate so far)."""
-
-    events: list[Event]
-    sweeps: list[Sweep]
-    counts: Counts
-    builder: GraphBuilder
-
-
-class EventMaker:
-    """The estimator's event stream of a mission, made one dataset event (an ``events.jsonl``
-    entry) at a time, as :func:`build_events` reads a recorded mission and the mission loop
-    runs a live one. A builder consumes the events as they are made, so that each observation
-    can be matched to the beacon predicted by the estimate so far.
-
-    ``odometry`` maps each robot to its odometry so far (stamps, poses); a move is fed once the
-    odometry covers its end. ``streams`` (each robot's decoded LMS stream so far) are passed to
-    :meth:`feed`, since they grow."""
-
-    def __init__(self, config: Config, robots: list[str], starts: dict[str, np.ndarray],
-                 odometry: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:  # fmt: skip
-        self.config, self.robots, self.odometry = config, robots, odometry
-        self.builder = GraphBuilder(graph_settings(config))
-        self.params = beacon_parameters(config)
-        self.events: list[Event] = []
-        self.sweeps: list[Sweep] = []
-        self.dwells = self.observations = self.held_back = 0
-        self.missing: list[str] = []
-        self.unseen: list[str] = []
-        # Odometry of a robot that moved before its first fix: (to_index, delta) per robot.
-        self.pending: dict[str, list[Move]] = {}
-        gauge = robots[0]
-        self._emit(Start(gauge, 0, tuple(float(v) for v in starts[gauge])))  # type: ignore[arg-type]
-
-    def _emit(self, event: Event) -> None:
-        self.builder.add(event)
-        self.events.append(event)
-
-    def feed(
-        self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]
-    ) -> list[Event]:
-        """Turn dataset event ``number`` into estimator events; returns the new ones."""
-        before = len(self.events)
-        kind = entry["event"]
-        if kind == "move":
-            self._move(entry)
-        elif kind == "dwell":
-            self._dwell(number, entry, streams)
-        return self.events[before:]
-
-    def _move(self, entry: dict[str, Any]) -> None:
-        robot = entry["robot"]
-        stamps, poses = self.odometry[robot]
-        start_s, end_s = float(entry["start_s"]), float(entry["t_s"])
-        before = _pose_at(stamps, poses, start_s)
-        after = _pose_at(stamps, poses, end_s)
-        dx, dy, dyaw = (float(v) for v in se2.between(before, after))
-        step = Move(robot, int(entry["to_index"]), (dx, dy, dyaw),
-                    _motion(stamps, poses, start_s, end_s, before, after))  # fmt: skip
-        if pose_key(robot, int(entry["from_index"])) in self.builder.guesses:
-            self._emit(step)
-        else:
-            self.held_back += 1
-            self.pending.setdefault(robot, []).append(step)
-
-    def _dwell(self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]) -> None:
-        config, builder = self.config, self.builder
-        self.dwells += 1
-        start, end = float(entry["t_s"]), float(entry["end_s"])
-        in_dwell: dict[str, Sweep] = {}
-        for robot in self.robots:
-            scan, why = sweep_in(streams[robot], start + 0.2, end, config)
-            index = int(entry["poses"][robot])
-            if scan is None:
-                self.missing.append(f"{robot}{index} (dwell {number}): {why}")
-                continue
-            detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **self.params)
-            sweep = Sweep(robot, index, number, scan, detections)
-            self.sweeps.append(sweep)
-            in_dwell[robot] = sweep
-        reference, mapper = entry.get("reference"), entry.get("mapper")
-        if reference in in_dwell and mapper in in_dwell:
-            ka = pose_key(reference, in_dwell[reference].index)
-            kc = pose_key(mapper, in_dwell[mapper].index)
-            seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
-            seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
-            if seen_a is None or seen_c is None:
-                self.unseen.append(
-                    f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
-                )
-            elif ka in builder.guesses or kc in builder.guesses:
-                observer = (reference, in_dwell[reference].index)
-                observed = (mapper, in_dwell[mapper].index)
-                self._emit(
-                    Observe(
-                        observer, observed,
-                        seen_a.range_m, seen_a.bearing_rad, seen_c.range_m, seen_c.bearing_rad,
-                    )
-                )  # fmt: skip
-                self.observations += 1
-                _flush_pending(self.pending, builder, self._emit)
-
-    def counts(self) -> Counts:
-        return Counts(self.dwells, self.observations, tuple(self.missing), tuple(self.unseen),
-                      self.held_back)  # fmt: skip
-
-    def result(self) -> EventStream:
-        return EventStream(self.events, self.sweeps, self.counts(), self.builder)
-
-
-def build_events(
-    dataset: Dataset,
-    streams: dict[str, RobotStream],
-    progress: Progress | None = None,
-) -> EventStream:
-    """The estimator's event stream of a dataset, the sweeps, and the counts of what failed
-    (:class:`EventMaker` over the dataset's event log)."""
-    odometry = {r: read_tum(dataset.path / "robots" / r / "odometry.tum") for r in dataset.robots}
-    maker = EventMaker(dataset.config, dataset.robots, dataset.starts, odometry)
-    for number, entry in enumerate(dataset.events):
-        maker.feed(number, entry, streams)
-        if progress is not None:
-            progress(f"event {number + 1}/{len(dataset.events)}")
-    return maker.result()
-
-
-def _motion(stamps: np.ndarray, poses: np.ndarray, start_s: float, end_s: float,
-            before: np.ndarray, after: np.ndarray) -> tuple[float, float]:  # fmt: skip
-    """How far the odometry says the robot drove and how much it turned between two instants
-    (the samples in between, and the poses at both ends)."""
-    inside = (stamps > start_s) & (stamps < end_s)
-    track = np.vstack([before, poses[inside], after])
-    driven = float(np.hypot(*np.diff(track[:, :2], axis=0).T).sum())
-    turned = float(np.abs(np.angle(np.exp(1j * np.diff(track[:, 2])))).sum())
-    return driven, turned
-
-
-def _flush_pending(
-    pending: dict[str, list[Move]],
-    builder: GraphBuilder,
-    emit: Callable[[Event], None],
-) -> None:
-    """Odometry of a robot that moved before its first fix joins once it is anchored."""
-    for robot, moves in list(pending.items()):
-        while moves and pose_key(robot, moves[0].index - 1) in builder.guesses:
-            step = moves.pop(0)
-            if pose_key(robot, step.index) not in builder.guesses:
-                emit(step)
-        if not moves:
-            del pending[robot]
 
 
 def _relocalization_numbers(events: list[dict[str, Any]]) -> set[int]:

@@ -23,11 +23,9 @@ import numpy as np
 from estimation import __version__
 from estimation.app.config import Config
 from estimation.app.dataset import (
-    Counts,
     Dataset,
     RobotStream,
     Sweep,
-    build_events,
     decode_robot,
     load_dataset,
     mapping_sweeps,
@@ -35,6 +33,7 @@ from estimation.app.dataset import (
     relocalization_dwells,
     stations,
 )
+from estimation.app.events import Counts, build_events
 from estimation.app.results import BatchOutput, write_results
 from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
 from estimation.errors import EstimationError

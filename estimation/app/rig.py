@@ -23,6 +23,7 @@ from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
 from sensors.lms200.driver import Lms200
 from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.scan3d.mirror import MirrorGeometry
+from sensors.sim.mission import OdometryNoise
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import RobotBody, SimulatedScanner, world_with_robots
 from sensors.sim.world import World
@@ -31,8 +32,10 @@ __all__ = [
     "T_robot_scanner",
     "beacon_parameters",
     "driver_from_config",
+    "dwell_seconds",
     "graph_settings",
     "mirror_geometry",
+    "odometry_noise",
     "robot_body",
     "search_params",
     "simulated_scan_source",
@@ -239,3 +242,20 @@ def scan_limits(config: Config) -> ScanLimits:
         scanner.field_of_view_deg, scanner.angular_resolution_deg,
         unit_mm=scanner.unit == "mm", baud_rate=config.serial.baud_rate,
     )  # fmt: skip
+
+
+def dwell_seconds(config: Config) -> float:
+    """Long enough for every scanner, whatever its phase, to complete one valid sweep."""
+    half_turn = config.mirror.period_s / 2
+    return 1.5 * half_turn * (1 + config.simulation.motor_rate_jitter) + 1.0
+
+
+def odometry_noise(config: Config) -> OdometryNoise:
+    """The simulated odometry's error per leg, as configured."""
+    sim = config.simulation
+    return OdometryNoise(
+        sigma_m=sim.odometry_sigma_m,
+        sigma_per_m=sim.odometry_sigma_per_m,
+        sigma_rad=math.radians(sim.odometry_sigma_deg),
+        sigma_rad_per_rad=math.radians(sim.odometry_sigma_deg_per_rad),
+    )

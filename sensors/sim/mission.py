@@ -101,7 +101,7 @@ class ChangesSpec(_Model):
 class AutoSpec(_Model):
     """Parameters of ``plan: auto``."""
 
-    stations: int = Field(4, ge=1, le=50)
+    stations: int = Field(4, ge=1, le=500)
     scans_per_station: int = Field(3, ge=1, le=10)
     coverage: float = Field(0.9, gt=0, le=1)
     mapper_distance_m: Annotated[list[float], Field(min_length=2, max_length=2)] = [1.5, 4.5]

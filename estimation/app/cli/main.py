@@ -16,6 +16,7 @@ from estimation.app.cli import (
     bench,
     calibrate,
     dataset,
+    evaluate_missions,
     lms,
     localize,
     mission,
@@ -42,6 +43,7 @@ app.command()(mission.evaluate)
 app.command()(ros.export)
 app.command()(localize.localize)
 app.command("evaluate-localization")(localize.evaluate_localization)
+app.command("evaluate-missions")(evaluate_missions.evaluate_missions)
 app.add_typer(world.world_app, name="world")
 app.add_typer(world.config_app, name="config")
 app.add_typer(bench.bench_app, name="bench")

@@ -47,8 +47,13 @@ _STATION_TIE_BONUS = 150.0
 #: Two poses closer than this (m, rad) are the same pose.
 _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
 #: A frontier whose distance did not shrink for this many stations is given up.
-_PATIENCE = 3
+_PATIENCE = 2
+#: A frontier counts when it has this many cells and borders at least this much unknown floor
+#: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
+_MIN_UNKNOWN_M2 = 4.0
+#: Unknown floor added around the known map, m.
+_BORDER_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -70,11 +75,19 @@ class MapView:
     ignore what the scans saw around those places (robot bodies and beacons)."""
 
     def __init__(self, grid: OccupancyGrid, config: Config, stood_xy: np.ndarray | None = None,
-                 margin_m: float = 0.1) -> None:  # fmt: skip
+                 margin_m: float = 0.05) -> None:  # fmt: skip
         robot = config.robot
         self.grid = grid
         self.radius_m = robot.footprint_radius_m
-        floor = floor_map(grid, body_z_m=(0.1, robot.body_height_m))
+        # A border of unknown floor around what is known: the room beyond a door nobody has
+        # looked through is unknown space, not the end of the map.
+        low, high = grid.bounds_cells()
+        res = grid.resolution_m
+        floor = floor_map(
+            grid, body_z_m=(0.1, robot.body_height_m),
+            lower_xy=grid.origin_m[:2] + low[:2] * res - _BORDER_M,
+            upper_xy=grid.origin_m[:2] + (high[:2] + 1) * res + _BORDER_M,
+        )  # fmt: skip
         self.stood = np.zeros((0, 2)) if stood_xy is None else np.asarray(stood_xy).reshape(-1, 2)
         if len(self.stood):
             floor = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
@@ -198,7 +211,8 @@ class Explorer:
         reach = view.distances_from(starts)
         best, best_m = None, math.inf
         for frontier in frontiers(view.floor, view.space, robot_radius_m=view.radius_m,
-                                  min_cells=_MIN_FRONTIER_CELLS):  # fmt: skip
+                                  min_cells=_MIN_FRONTIER_CELLS,
+                                  min_unknown_m2=_MIN_UNKNOWN_M2):  # fmt: skip
             if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
                 continue
             d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))

@@ -20,8 +20,7 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config
-from estimation.app.rig import robot_body, simulated_scanner
-from estimation.app.sim.simulate import dwell_seconds, odometry_noise
+from estimation.app.rig import dwell_seconds, odometry_noise, robot_body, simulated_scanner
 from sensors.atomic import write_text_atomic
 from sensors.geometry import se2
 from sensors.sim.mission import ChangesSpec, MissionError, Odometer, SensorRecorder, TimelineBuilder

@@ -33,12 +33,12 @@ import numpy as np
 from estimation import __version__
 from estimation.app.config import Config
 from estimation.app.dataset import (
-    EventMaker,
     LmsDecoder,
     Sweep,
     stations_of,
     sweeps_before_changes,
 )
+from estimation.app.events import EventMaker
 from estimation.app.mission.explore import Explorer, MapView
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
@@ -172,6 +172,7 @@ class MissionLoop:
         self.unobserved: list[str] = []
         self.given_up: list[list[float]] = []
         self.changed: list[str] = []
+        self.trace: list[dict[str, Any]] = []  # per station of an exploration
 
     # -- what the robots recorded -------------------------------------------------------------
 
@@ -352,9 +353,16 @@ class MissionLoop:
             for _ in range(auto.scans_per_station):
                 if not self._scan(explorer, reference, mapper, frontier, scans):
                     break
+            self.trace.append({
+                "step": k, "reference": f"{reference}{self.index[reference]}",
+                "pose": _as_spec(self.pose(reference)), "scans": len(scans),
+                "frontier": None if frontier is None else [round(float(v), 2)
+                                                           for v in frontier.centroid_xy],
+                "refused": len(self.refused),
+            })  # fmt: skip
             if not scans:
-                if k == 0:
-                    reason = f"no mapper pose around robot {reference} at the start sees its beacon"
+                where = "at the start " if k == 0 else ""
+                reason = f"no mapper pose around robot {reference} {where}sees its beacon"
                 break
             self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
             self._station_done(station)
@@ -453,6 +461,7 @@ class MissionLoop:
             "unobserved_scans": self.unobserved,
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "given_up_frontiers": self.given_up,
+            "stations": self.trace,
         }  # fmt: skip
 
     def _next_map_seconds(self) -> dict[str, float]:

@@ -16,8 +16,8 @@ import numpy as np
 from estimation.app.config import Config
 from estimation.app.mission.fleet import SimulatedFleet
 from estimation.app.mission.loop import LoopResult, MissionLoop
-from sensors.sim.mission import MissionSpec
-from sensors.sim.planner import FreeSpace
+from sensors.sim.mission import MissionError, MissionSpec
+from sensors.sim.planner import FreeSpace, free_space
 from sensors.sim.world import World
 
 __all__ = ["fly"]
@@ -37,7 +37,14 @@ def fly(
     """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``."""
     starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
               for r in mission.robots}  # fmt: skip
-    fleet = SimulatedFleet(world, space, config, starts, seed)
+    # The body collides when it touches: the planning margin is the loop's, on its own map.
+    body_space = free_space(world, robot_radius_m=config.robot.footprint_radius_m,
+                            robot_height_m=config.robot.body_height_m, margin_m=0.0)  # fmt: skip
+    for name, pose in starts.items():
+        if not space.is_free(pose[:2]):
+            raise MissionError(f"robot {name!r} starts at ({pose[0]:g}, {pose[1]:g}), where it "
+                               "does not fit")  # fmt: skip
+    fleet = SimulatedFleet(world, body_space, config, starts, seed)
     loop = MissionLoop(fleet, mission, config, work, concurrent=concurrent, progress=status)
     try:
         reason = loop.run()

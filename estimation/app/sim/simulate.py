@@ -20,11 +20,10 @@ import numpy as np
 from estimation import __version__
 from estimation.app.config import Config, ConfigError, config_from_mapping
 from estimation.app.resources import resolve_builtin
-from estimation.app.rig import robot_body, simulated_scanner
+from estimation.app.rig import dwell_seconds, odometry_noise, robot_body, simulated_scanner
 from sensors.atomic import check_replaceable, replace_directory, write_text_atomic
 from sensors.sim.mission import (
     MissionSpec,
-    OdometryNoise,
     StepSpec,
     build_timeline,
     load_mission,
@@ -75,23 +74,6 @@ def robot_free_space(world: World, config: Config) -> FreeSpace:
     robot = config.robot
     return free_space(
         world, robot_radius_m=robot.footprint_radius_m, robot_height_m=robot.body_height_m
-    )
-
-
-def dwell_seconds(config: Config) -> float:
-    """Long enough for every scanner, whatever its phase, to complete one valid sweep."""
-    half_turn = config.mirror.period_s / 2
-    return 1.5 * half_turn * (1 + config.simulation.motor_rate_jitter) + 1.0
-
-
-def odometry_noise(config: Config) -> OdometryNoise:
-    """The simulated odometry's error per leg, as configured."""
-    sim = config.simulation
-    return OdometryNoise(
-        sigma_m=sim.odometry_sigma_m,
-        sigma_per_m=sim.odometry_sigma_per_m,
-        sigma_rad=math.radians(sim.odometry_sigma_deg),
-        sigma_rad_per_rad=math.radians(sim.odometry_sigma_deg_per_rad),
     )
 
 

@@ -36,6 +36,7 @@ COMMANDS: dict[str, tuple[str, ...]] = {
     "demo": ("demo", "--out", "{tmp}/demo"),
     "localize": ("localize", "--map", "{tmp}/map.yaml", "--scan", "{tmp}/scan.yaml"),
     "evaluate-localization": ("evaluate-localization", "--only", "sim", "--trials", "1"),
+    "evaluate-missions": ("evaluate-missions", "--worlds", "1", "--seed", "0", "--out", "{tmp}/em"),
     "world-show": ("world", "show", "essex_lab", "--out", "{tmp}/w.png"),
     "world-list": ("world", "list"),
     "config-show": ("config", "show"),
