@@ -98,7 +98,12 @@ def simulate(
         def progress(robot: str, fraction: float) -> None:
             status.update(f"simulating {path.stem}: sensors of robot {robot} ({fraction:.0%})")
 
-        result = run_simulation(path, out, overrides=overrides, seed=seed, progress=progress)
+        def update(text: str) -> None:
+            status.update(f"{path.stem}: {text}")
+
+        result = run_simulation(
+            path, out, overrides=overrides, seed=seed, progress=progress, status=update
+        )
     console = make_console()
     poses = ", ".join(f"{name} {count}" for name, count in result.poses.items())
     console.print(
@@ -107,6 +112,18 @@ def simulate(
         f"{sum(result.telegrams.values()):,} LMS telegrams"
         + (f"; {len(result.changed)} objects moved afterwards" if result.changed else "")
     )
+    if result.loop is not None:
+        loop = result.loop
+        work = loop["work_per_dwell_s"]
+        late = sum(not item["in_time"] for item in loop["concurrent_localization"])
+        console.print(
+            f"  mission loop: {loop['stop_reason']}; work per dwell median {work['median']:.2f} s, "
+            f"p99 {work['p99']:.2f} s; {len(loop['concurrent_localization'])} concurrent "
+            f"localizations ({late} late); {len(loop['retried_observations'])} observations "
+            f"retried, {len(loop['refused_goals'])} goals refused"
+        )
+        console.print(f"  wrote {result.out_dir}/ and its result {result.out_dir / 'result'}/")
+        return
     console.print(f"  wrote {result.out_dir}/")
 
 

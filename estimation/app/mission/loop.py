@@ -323,6 +323,11 @@ class MissionLoop:
         reason = f"station budget ({auto.stations}) spent"
         for k in range(auto.stations):
             self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
+            if self.progress is not None:
+                self.progress(
+                    f"station {k + 1} (budget {auto.stations}): robot {reference} references, "
+                    f"robot {mapper} maps; {self.now_s:.0f} s flown"
+                )
             view = self._view()
             if view is None:
                 reason = "the estimated map holds no floor"
@@ -464,7 +469,7 @@ class MissionLoop:
             "stations": self.trace,
         }  # fmt: skip
 
-    def _next_map_seconds(self) -> dict[str, float]:
+    def _next_map_seconds(self) -> dict[str, float | None]:
         """Per station: how long (mission time) the next local map took to make — the time
         its concurrent global localization had."""
         starts = [
@@ -477,11 +482,13 @@ class MissionLoop:
             if not order or order[-1][0] != label:
                 order.append((label, t))
         end = float(self.entries[-1].get("end_s", self.entries[-1]["t_s"])) if self.entries else 0
-        out = {}
+        out: dict[str, float | None] = {}
         for n, (label, _) in enumerate(order):
-            begin = order[n + 1][1] if n + 1 < len(order) else end
+            if n + 1 == len(order):
+                out[label] = None  # no local map was made after the last station's
+                continue
             finish = order[n + 2][1] if n + 2 < len(order) else end
-            out[label] = finish - begin
+            out[label] = finish - order[n + 1][1]
         return out
 
     def finish(self, out: Path, stop_reason: str) -> LoopResult:
@@ -498,6 +505,7 @@ class MissionLoop:
                              progress=self.progress, report={"mission_loop": loop})  # fmt: skip
         final = {pose_key(r, i): p for r, poses in output.poses.items() for i, p in poses.items()}
         shared = [k for k in final if k in online]
+        # After the report: how far the estimate that steered the mission lay from the final one.
         loop["online_vs_final_m"] = max(
             (math.hypot(*(final[k][:2] - online[k][:2])) for k in shared), default=0.0
         )

@@ -1,0 +1,131 @@
+"""The mission loop end to end: estimation and planning during a simulated mission, the dataset
+it records, and batch reproducing its result."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from estimation.app.mission.fleet import SimulatedFleet
+from estimation.app.mission.loop import MissionLoop
+from estimation.app.pipeline import prepare, run_batch
+from estimation.app.sim.simulate import (
+    SimulationResult,
+    mission_config,
+    robot_free_space,
+    run_simulation,
+)
+from estimation.posegraph.events import Move, Observe, Start
+from sensors.sim.mission import MissionError, load_mission
+from sensors.sim.world import load_world
+from sensors.trajio import read_tum
+from tests.paths import REPO
+
+ESSEX = REPO / "configs" / "worlds" / "essex_lab.yaml"
+
+
+def write_mission(folder: Path, **auto: object) -> Path:
+    path = folder / "mission.yaml"
+    document = {
+        "world": str(ESSEX),
+        "seed": 0,
+        "robots": [
+            {"name": "a", "start": [2.0, 3.5, 20]},
+            {"name": "b", "start": [3.5, 5.75, 220]},
+        ],
+        "plan": "auto",
+        "auto": {"stations": 2, "scans_per_station": 2, "planner": "map", **auto},
+        "changes": {"movable_fraction": 0.5, "shift_m": 0.5, "yaw_deg": 30},
+    }
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    return path
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, SimulationResult]:
+    folder = tmp_path_factory.mktemp("loop")
+    result = run_simulation(write_mission(folder), folder / "dataset")
+    return folder / "dataset", result
+
+
+def test_the_loop_records_a_dataset_that_batch_reproduces(
+    flown: tuple[Path, SimulationResult],
+) -> None:
+    dataset = flown[0]
+    for name in ("mission.yaml", "events.jsonl", "world.yaml", "world_changed.yaml"):
+        assert (dataset / name).is_file(), name
+    for robot in "ab":
+        assert (dataset / "robots" / robot / "lms.cap").stat().st_size > 100_000
+        assert (dataset / "ground_truth" / f"{robot}.tum").is_file()
+    out = run_batch(dataset, dataset.parent / "batch")
+    for robot in "ab":
+        _, live = read_tum(dataset / "result" / "poses" / f"{robot}.tum")
+        _, offline = read_tum(dataset.parent / "batch" / "poses" / f"{robot}.tum")
+        assert live.shape == offline.shape
+        assert len(live) >= 3
+        assert np.abs(live[:, :2] - offline[:, :2]).max() < 1e-3
+        assert np.abs(np.angle(np.exp(1j * (live[:, 2] - offline[:, 2])))).max() < 1e-3
+    assert out.report["observations"] >= 4
+
+
+def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) -> None:
+    dataset, result = flown
+    report = json.loads((dataset / "result" / "report.json").read_text(encoding="utf-8"))
+    loop = report["mission_loop"]
+    assert loop["stop_reason"] == "station budget (2) spent"
+    assert loop["dwells"] >= 6  # start, 2 × 2 scans, a station turn, the relocalization
+    assert 0 < loop["work_per_dwell_s"]["median"] <= loop["work_per_dwell_s"]["p99"] < 5.0
+    assert [item["station"] for item in loop["concurrent_localization"]] == ["a0", "b3"]
+    assert loop["concurrent_localization"][-1]["next_map_mission_s"] is None
+    # The estimate steering the mission against the final one (the caller's figure).
+    assert result.loop is not None
+    assert result.loop["online_vs_final_m"] < 0.05
+    assert len(loop["changed"]) > 0
+    assert loop["refused_goals"] == []
+    assert len(loop["stations"]) == 2
+    mission = yaml.safe_load((dataset / "mission.yaml").read_text(encoding="utf-8"))
+    assert len(mission["plan"]) == 2  # the plan as flown, explicit
+    assert result.steps == 2
+
+
+def test_the_loops_event_stream_is_the_one_batch_reads(tmp_path: Path) -> None:
+    """The loop decodes and builds events as the bytes arrive; batch reads the dataset: the
+    same events, number for number."""
+    path = write_mission(tmp_path, stations=1, scans_per_station=1)
+    mission = load_mission(path)
+    config = mission_config(mission, None, str(path))
+    world = load_world(ESSEX)
+    starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
+              for r in mission.robots}  # fmt: skip
+    work = tmp_path / "work"
+    work.mkdir()
+    fleet = SimulatedFleet(world, robot_free_space(world, config), config, starts, seed=3)
+    loop = MissionLoop(fleet, mission, config, work, concurrent=False)
+    loop.run()
+    loop.record()
+    offline = prepare(work, None, None).events
+    assert len(offline) == len(loop.maker.events) >= 4
+    kinds = {type(e) for e in offline}
+    assert {Start, Move, Observe} <= kinds
+    for a, b in zip(offline, loop.maker.events, strict=True):
+        assert type(a) is type(b)
+        if isinstance(a, Move):
+            assert a.delta == pytest.approx(b.delta, abs=1e-12)
+            assert a.motion == pytest.approx(b.motion, abs=1e-12)
+        if isinstance(a, Observe):
+            assert (a.a_m, a.b_m) == pytest.approx((b.a_m, b.b_m), abs=1e-12)
+
+
+def test_a_start_where_the_robot_does_not_fit_is_refused(tmp_path: Path) -> None:
+    path = write_mission(tmp_path)
+    document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    document["robots"][0]["start"] = [-5.0, -5.0, 0.0]
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    with pytest.raises(MissionError, match="robot 'a' starts at"):
+        run_simulation(path, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
