@@ -18,7 +18,6 @@ ground truth (``ground_truth/<name>.tum``), plus the world(s) and the effective 
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from collections.abc import Callable
@@ -255,13 +254,7 @@ class TimelineBuilder:
         if path is None:
             legs = self.space.path(start[:2], target[:2])
         else:
-            legs = [start[:2], *(np.asarray(p, dtype=float)[:2] for p in path[1:-1]), target[:2]]
-            for a, b in itertools.pairwise(legs):
-                if not self.space.segment_free(a, b):
-                    raise MissionError(
-                        f"{where}: robot {robot!r} would collide on the leg ({a[0]:.2f}, "
-                        f"{a[1]:.2f}) → ({b[0]:.2f}, {b[1]:.2f}) of its path"
-                    )
+            legs = self._follow(robot, start[:2], target[:2], path, where)
         if legs is None:
             raise MissionError(
                 f"{where}: robot {robot!r} cannot reach ({target[0]:g}, {target[1]:g}) "
@@ -294,6 +287,33 @@ class TimelineBuilder:
                  to_index=self.index[robot], start_s=round(begin, 6))  # fmt: skip
         return True
 
+    def _follow(self, robot: str, start: np.ndarray, target: np.ndarray,
+                path: list[np.ndarray], where: str) -> list[np.ndarray]:  # fmt: skip
+        """The legs a robot drives along a planned ``path``: its local control keeps the body
+        clear of what is really there by deviating up to ``LOCAL_DEVIATION_M`` from a leg (as a
+        robot's own obstacle avoidance would); a leg that cannot be driven so is a collision."""
+        points = [start, *(np.asarray(p, dtype=float)[:2] for p in path[1:-1]), target]
+        legs = [start]
+        for b in points[1:]:
+            a = legs[-1]
+            if b is not target and not self.space.is_free(b):
+                continue  # a corner of the plan that the body cannot reach: cut it
+            if self.space.segment_free(a, b):
+                legs.append(b)
+                continue
+            local = None
+            if self.space.is_free(b):
+                local = self.space.path(a, b)
+            if local is None or any(
+                _distance_to_segment(q, a, b) > LOCAL_DEVIATION_M for q in local
+            ):
+                raise MissionError(
+                    f"{where}: robot {robot!r} would collide on the leg ({a[0]:.2f}, "
+                    f"{a[1]:.2f}) → ({b[0]:.2f}, {b[1]:.2f}) of its path"
+                )
+            legs += local[1:]
+        return legs
+
     def dwell(self, **fields: Any) -> None:
         begin = self.t
         self.t += self.dwell_s
@@ -303,6 +323,17 @@ class TimelineBuilder:
             {"t_s": round(begin, 6), "event": "dwell", "end_s": round(self.t, 6),
              "poses": dict(self.index), **fields}
         )  # fmt: skip
+
+
+#: How far a robot's own obstacle avoidance may take it from a leg of its planned path (m).
+LOCAL_DEVIATION_M = 0.3
+
+
+def _distance_to_segment(q: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    length2 = float(ab @ ab)
+    t = 0.0 if length2 == 0 else float(np.clip((q - a) @ ab / length2, 0.0, 1.0))
+    return float(np.linalg.norm(q - (a + t * ab)))
 
 
 def build_timeline(

@@ -309,7 +309,7 @@ class Explorer:
                 self._candidates(view, reference, mapper, others, reachable, exclude))),
             key=lambda item: (-item[0], item[1]),
         )  # fmt: skip
-        for score, _, candidate in ranked[:5]:
+        for score, _, candidate in ranked[:12]:
             path = view.space.path(start, candidate[:2])
             if path is None:
                 continue

@@ -126,6 +126,10 @@ class _Station:
     started_s: float
 
 
+#: A station as flown: the reference's turn (None: it stayed), the scan poses, the station.
+_Flown = tuple[list[float] | None, list[list[float]], _Station]
+
+
 @dataclass
 class MissionLoop:
     """One mission, run on the estimated state (see the module's docstring)."""
@@ -333,42 +337,23 @@ class MissionLoop:
                 reason = "the estimated map holds no floor"
                 break
             ref_pose, map_pose = self.pose(reference), self.pose(mapper)
-            others = {n: self.pose(n) for n in names}
             frontier = explorer.frontier(view, [ref_pose[:2], map_pose[:2]])
             if frontier is None and k > 0:
                 reason = "no reachable frontier left"
                 break
-            at: list[float] | None = None
-            if k > 0:
-                heading = explorer.heading(
-                    view, ref_pose, map_pose, [p for n, p in others.items() if n != mapper],
-                    frontier,
-                )  # fmt: skip
-                if heading is None:
-                    reason = f"no mapper pose around robot {reference} sees its beacon"
-                    break
-                target = np.array([ref_pose[0], ref_pose[1], heading])
-                turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
-                if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
-                    at = _as_spec(target)
-                    self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
-                    explorer.taken.append(self.pose(reference))
-            station = _Station(reference, self.index[reference], self.now_s)
-            scans: list[list[float]] = []
-            for _ in range(auto.scans_per_station):
-                if not self._scan(explorer, reference, mapper, frontier, scans):
-                    break
-            self.trace.append({
-                "step": k, "reference": f"{reference}{self.index[reference]}",
-                "pose": _as_spec(self.pose(reference)), "scans": len(scans),
-                "frontier": None if frontier is None else [round(float(v), 2)
-                                                           for v in frontier.centroid_xy],
-                "refused": len(self.refused),
-            })  # fmt: skip
-            if not scans:
+            flown = self._station(k, explorer, reference, mapper, frontier)
+            if flown is None and k > 0:
+                # Stuck (a corner, a doorway): the mapper, standing elsewhere, references.
+                reference, mapper = mapper, reference
+                self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
+                flown = self._station(k, explorer, reference, mapper, frontier)
+            if flown is None:
                 where = "at the start " if k == 0 else ""
                 reason = f"no mapper pose around robot {reference} {where}sees its beacon"
+                if k > 0:
+                    reason = f"no mapper pose around robot {reference} or {mapper} sees its beacon"
                 break
+            at, scans, station = flown
             self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
             self._station_done(station)
             view = self._view()
@@ -381,6 +366,40 @@ class MissionLoop:
                 mapper = names[(names.index(reference) + 1) % len(names)]
         self.given_up = [list(map(float, g)) for g in explorer.given_up]
         return reason
+
+    def _station(self, k: int, explorer: Explorer, reference: str, mapper: str,
+                 frontier: Any) -> _Flown | None:  # fmt: skip
+        """One station: the reference turns to its best heading (after the first), the mapper
+        takes its scan poses around it. None when no scan pose was possible."""
+        at: list[float] | None = None
+        if k > 0:
+            view = self._view()
+            if view is None:
+                return None
+            ref_pose, map_pose = self.pose(reference), self.pose(mapper)
+            others = [self.pose(n) for n in self.robots if n not in (reference, mapper)]
+            heading = explorer.heading(view, ref_pose, map_pose, [ref_pose, *others], frontier)
+            if heading is None:
+                return None
+            target = np.array([ref_pose[0], ref_pose[1], heading])
+            turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
+            if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
+                at = _as_spec(target)
+                self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
+                explorer.taken.append(self.pose(reference))
+        station = _Station(reference, self.index[reference], self.now_s)
+        scans: list[list[float]] = []
+        for _ in range(self.mission.auto.scans_per_station):
+            if not self._scan(explorer, reference, mapper, frontier, scans):
+                break
+        self.trace.append({
+            "step": k, "reference": f"{reference}{self.index[reference]}",
+            "pose": _as_spec(self.pose(reference)), "scans": len(scans),
+            "frontier": None if frontier is None else [round(float(v), 2)
+                                                       for v in frontier.centroid_xy],
+            "refused": len(self.refused),
+        })  # fmt: skip
+        return (at, scans, station) if scans else None
 
     def _scan(self, explorer: Explorer, reference: str, mapper: str, frontier: Any,
               scans: list[list[float]]) -> bool:  # fmt: skip
