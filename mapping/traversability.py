@@ -11,6 +11,7 @@ frontier cells form a frontier, and a frontier reachable from the robot is a pla
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,15 @@ from mapping.grid import OccupancyGrid
 from mapping.kernels.traversal import ray_cells
 from sensors.sim.planner import FreeSpace
 
-__all__ = ["FloorMap", "Frontier", "drivable_space", "floor_map", "frontiers", "line_of_sight"]
+__all__ = [
+    "FloorMap",
+    "Frontier",
+    "drivable_space",
+    "floor_map",
+    "frontiers",
+    "large_unknown",
+    "line_of_sight",
+]
 
 
 @dataclass(frozen=True)
@@ -117,15 +126,7 @@ def frontiers(
     shadow behind a desk, not the room beyond a door; unknown space that reaches the map's
     border is never small)."""
     res = floor.resolution_m
-    unknown = floor.unknown
-    if min_unknown_m2 > 0:
-        labels, count = ndimage.label(unknown, structure=np.ones((3, 3)))
-        sizes = np.bincount(labels.ravel(), minlength=count + 1) * res * res
-        large = sizes >= min_unknown_m2
-        border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
-        large[border] = True
-        large[0] = False
-        unknown = large[labels]
+    unknown = large_unknown(floor, min_unknown_m2) if min_unknown_m2 > 0 else floor.unknown
     near_unknown = _distance_to(unknown, res) <= robot_radius_m + 1.5 * res
     edge = space.free & near_unknown
     if from_xy is not None:
@@ -142,6 +143,19 @@ def frontiers(
         centroid = floor.lower_xy + (cells[:, ::-1].mean(axis=0) + 0.5) * res
         found.append(Frontier(cells, centroid, len(cells)))
     return sorted(found, key=lambda f: -f.size)
+
+
+def large_unknown(floor: FloorMap, min_unknown_m2: float) -> np.ndarray:
+    """The unknown floor cells in connected unknown regions of at least ``min_unknown_m2``
+    (8-connected), or reaching the map's border."""
+    res = floor.resolution_m
+    labels, count = ndimage.label(floor.unknown, structure=np.ones((3, 3)))
+    sizes = np.bincount(labels.ravel(), minlength=count + 1) * res * res
+    large = sizes >= min_unknown_m2
+    border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])
+    large[border] = True
+    large[0] = False
+    return np.asarray(large[labels])
 
 
 def line_of_sight(
@@ -165,6 +179,20 @@ def line_of_sight(
     end = np.asarray(end_m, dtype=float)
     if not (np.isfinite(start).all() and np.isfinite(end).all()):
         raise MapError(f"line of sight needs finite end points, got {start} and {end}")
+    for name, value in (("start_clearance_m", start_clearance_m),
+                        ("end_clearance_m", end_clearance_m)):  # fmt: skip
+        if not (math.isfinite(value) and value >= 0):
+            raise MapError(f"line of sight: {name} must be finite and >= 0, got {value}")
+    if (
+        ignore_xy is not None
+        and len(ignore_xy)
+        and not (
+            np.isfinite(np.asarray(ignore_xy, dtype=float)).all()
+            and math.isfinite(ignore_radius_m)
+            and ignore_radius_m >= 0
+        )
+    ):
+        raise MapError("line of sight: the ignored points and their radius must be finite")
     length = float(np.linalg.norm(end - start))
     if length <= end_clearance_m + start_clearance_m:
         return True

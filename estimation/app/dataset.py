@@ -302,7 +302,7 @@ class LmsDecoder:
 
     def stream(self, truncated_bytes: int = 0, corrupt_bytes: int = 0) -> RobotStream:
         return RobotStream(
-            scans=self.scans,
+            scans=list(self.scans),  # a snapshot: the decoder goes on appending
             times_s=self.clock.times(),
             telegrams=self.parser.stats.telegrams,
             undecodable=self.undecodable,

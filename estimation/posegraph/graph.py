@@ -325,6 +325,13 @@ class GraphBuilder:
         robot = check_robot(event.robot)
         delta = np.asarray(event.delta, dtype=float)
         _finite(number, "Move.delta", delta)
+        if event.motion is not None and not (
+            len(event.motion) == 2 and all(math.isfinite(v) and v >= 0 for v in event.motion)
+        ):
+            raise EstimationError(
+                f"event {number}: Move.motion (m driven, rad turned) must be two finite numbers "
+                f">= 0, got {event.motion}"
+            )
         if robot not in self._latest:
             raise EstimationError(
                 f"event {number}: robot {robot!r} moves but has no pose yet (its first pose comes "

@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
-from mapping.traversability import drivable_space, floor_map, frontiers, line_of_sight
+from mapping.traversability import (
+    FloorMap,
+    Frontier,
+    drivable_space,
+    floor_map,
+    frontiers,
+    line_of_sight,
+)
 from tests.mapping.conftest import room_scan
 
 ROOM = (10.0, 3.0, 2.5)
@@ -107,3 +116,144 @@ def test_line_of_sight_is_blocked_by_walls_and_by_what_nobody_saw(grid: Occupanc
     assert line_of_sight(grid, SENSOR, SENSOR + 0.1)  # shorter than the end clearance
     with pytest.raises(MapError, match="finite end points"):
         line_of_sight(grid, SENSOR, np.array([np.nan, 0.0, 0.0]))
+
+
+RES = 0.1
+
+
+def walled_floor(unknown_boxes: list[tuple[float, float, float, float]],
+                 doorway: tuple[float, float] | None = None) -> FloorMap:  # fmt: skip
+    """An 8 m × 6 m floor known free inside a one-cell wall at the map's border, with unknown
+    boxes (x0, y0, x1, y1) in it; ``doorway`` (x0, x1): the bottom wall is missing there and
+    the floor behind it, up to half a metre in, was never seen."""
+    rows, cols = 60, 80
+    obstacle = np.zeros((rows, cols), dtype=bool)
+    obstacle[[0, -1], :] = True
+    obstacle[:, [0, -1]] = True
+    unknown = np.zeros_like(obstacle)
+    xs = (np.arange(cols) + 0.5) * RES
+    ys = (np.arange(rows) + 0.5) * RES
+    gx, gy = np.meshgrid(xs, ys)
+    for x0, y0, x1, y1 in unknown_boxes:
+        unknown |= (gx > x0) & (gx < x1) & (gy > y0) & (gy < y1)
+    if doorway is not None:
+        door = (gx > doorway[0]) & (gx < doorway[1]) & (gy < 0.5)
+        obstacle &= ~door
+        unknown |= door
+    return FloorMap(obstacle & ~unknown, ~obstacle & ~unknown, np.zeros(2), RES)
+
+
+def centroids(found: list[Frontier]) -> list[tuple[float, float]]:
+    return [(round(float(f.centroid_xy[0]), 1), round(float(f.centroid_xy[1]), 1)) for f in found]
+
+
+def test_frontiers_of_a_small_enclosed_unknown_patch_are_dropped() -> None:
+    # A desk's shadow (0.4 m × 0.4 m) and an unseen 2.5 m × 2.5 m area, both inside the room.
+    floor = walled_floor([(1.8, 2.8, 2.2, 3.2), (4.5, 1.75, 7.0, 4.25)])
+    assert floor.unknown.sum() * RES**2 == pytest.approx(0.16 + 6.25, abs=0.3)
+    space = drivable_space(floor, robot_radius_m=0.3)
+    every = frontiers(floor, space, robot_radius_m=0.3)
+    assert len(every) == 2
+    assert every[0].centroid_xy == pytest.approx((5.75, 3.0), abs=0.1)  # the larger first
+    assert every[1].centroid_xy == pytest.approx((2.0, 3.0), abs=0.1)
+    kept = frontiers(floor, space, robot_radius_m=0.3, min_unknown_m2=4.0)
+    assert centroids(kept) == centroids(every[:1])
+    np.testing.assert_array_equal(kept[0].cells, every[0].cells)
+    # The threshold is on the patch's area: 6.25 m² passes 6 m² and fails 7 m².
+    assert len(frontiers(floor, space, robot_radius_m=0.3, min_unknown_m2=6.0)) == 1
+    assert frontiers(floor, space, robot_radius_m=0.3, min_unknown_m2=7.0) == []
+    # The small patch still keeps the robot away: it only stops being a place to explore.
+    assert not space.is_free((2.0, 3.0))
+
+
+def test_unknown_space_beyond_the_map_border_is_never_small() -> None:
+    # A doorway in the bottom wall: 0.5 m² of unseen floor behind it, reaching the border.
+    floor = walled_floor([(1.8, 2.8, 2.2, 3.2)], doorway=(3.0, 4.0))
+    space = drivable_space(floor, robot_radius_m=0.3)
+    kept = frontiers(floor, space, robot_radius_m=0.3, min_unknown_m2=4.0, from_xy=(4.0, 3.0))
+    assert len(kept) == 1
+    assert kept[0].centroid_xy[0] == pytest.approx(3.5, abs=0.15)
+    assert kept[0].centroid_xy[1] < 1.2
+    # The same 0.5 m² enclosed inside the room is a shadow and is dropped.
+    enclosed = walled_floor([(1.8, 2.8, 2.2, 3.2), (5.0, 2.5, 6.0, 3.0)])
+    space = drivable_space(enclosed, robot_radius_m=0.3)
+    assert frontiers(enclosed, space, robot_radius_m=0.3, min_unknown_m2=4.0) == []
+    assert len(frontiers(enclosed, space, robot_radius_m=0.3)) == 2
+
+
+def slab_grid(occupied_xy: list[tuple[float, float]]) -> OccupancyGrid:
+    """A 5 m × 2 m layer of cells seen free at z 0.4-0.5 m, with occupied cells at
+    ``occupied_xy``; everything else unknown."""
+    params = GridParams(resolution_m=RES)
+    i, j = np.meshgrid(np.arange(50), np.arange(20), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), np.full(i.size, 4)])
+    values = np.full(len(cells), params.logodds_min)
+    for x, y in occupied_xy:
+        values[(cells == (math.floor(x / RES), math.floor(y / RES), 4)).all(axis=1)] = 2.0
+    return OccupancyGrid.from_cells(params, cells, values)
+
+
+A = np.array([0.55, 1.05, 0.45])
+B = np.array([4.75, 1.05, 0.45])
+
+
+def test_line_of_sight_ignores_what_was_seen_around_robots_only() -> None:
+    grid = slab_grid([(2.05, 1.05), (4.05, 1.05)])
+    assert line_of_sight(grid, A, B, end_clearance_m=0.0, unknown_blocks=True) is False
+    assert line_of_sight(slab_grid([]), A, B, end_clearance_m=0.0) is True
+    # Near an ignored point an occupied cell no longer blocks; the one elsewhere still does.
+    one = np.array([[2.0, 1.1]])
+    assert not line_of_sight(grid, A, B, ignore_xy=one, ignore_radius_m=0.3)
+    both = np.array([[2.0, 1.1], [4.1, 0.9]])
+    assert line_of_sight(grid, A, B, ignore_xy=both, ignore_radius_m=0.3)
+    # The radius is in the plane, from the cell centres: 0.25 m away with a 0.2 m radius counts.
+    off = np.array([[2.05, 1.3], [4.05, 0.8]])
+    assert not line_of_sight(grid, A, B, ignore_xy=off, ignore_radius_m=0.2)
+    assert line_of_sight(grid, A, B, ignore_xy=off, ignore_radius_m=0.26)
+    # No radius or no points: nothing is ignored.
+    assert not line_of_sight(grid, A, B, ignore_xy=both, ignore_radius_m=0.0)
+    assert not line_of_sight(grid, A, B, ignore_xy=np.zeros((0, 2)), ignore_radius_m=0.3)
+    # Ignored cells are not tested for being unknown either, but the others are.
+    beyond = np.array([6.0, 1.05, 0.45])  # the last metre was never seen
+    assert not line_of_sight(grid, A, beyond, ignore_xy=both, ignore_radius_m=0.3)
+    assert line_of_sight(grid, A, beyond, ignore_xy=np.vstack([both, [[5.5, 1.05]]]),
+                         ignore_radius_m=0.6)  # fmt: skip
+
+
+def test_line_of_sight_skips_the_start_clearance() -> None:
+    grid = slab_grid([(0.75, 1.05), (4.05, 1.05)])  # 0.2 m ahead of the start, and 0.7 m short
+    end = np.array([3.35, 1.05, 0.45])  # short of the second: only the first is in the way
+    assert not line_of_sight(grid, A, end)
+    assert line_of_sight(grid, A, end, start_clearance_m=0.3)
+    assert not line_of_sight(grid, A, end, start_clearance_m=0.1)
+    # Start clearance does not reach the far cell, end clearance does.
+    assert not line_of_sight(grid, A, B, start_clearance_m=0.3)
+    assert line_of_sight(grid, A, B, start_clearance_m=0.3, end_clearance_m=0.8)
+    # Both clearances together longer than the segment: nothing is left to test.
+    assert line_of_sight(grid, A, A + np.array([0.5, 0.0, 0.0]), start_clearance_m=0.3,
+                         end_clearance_m=0.25)  # fmt: skip
+
+
+def test_line_of_sight_refuses_non_finite_end_points() -> None:
+    grid = slab_grid([])
+    for start, end in [(A, np.array([np.inf, 1.0, 0.45])), (np.array([np.nan, 1, 0.45]), B)]:
+        with pytest.raises(MapError, match="finite end points"):
+            line_of_sight(grid, start, end, ignore_xy=np.array([[2.0, 1.0]]),
+                          ignore_radius_m=0.3)  # fmt: skip
+
+
+@pytest.mark.parametrize("clearance", ["start_clearance_m", "end_clearance_m"])
+def test_line_of_sight_refuses_a_non_finite_clearance(clearance: str) -> None:
+    """A NaN clearance (e.g. from a NaN beacon offset) must be a MapError, not a crash."""
+    grid = slab_grid([])
+    with pytest.raises(MapError, match=clearance):
+        line_of_sight(grid, A, B, **{clearance: math.nan})
+
+
+def test_line_of_sight_refuses_non_finite_ignored_points() -> None:
+    """Robots' stop poses from an estimate that diverged must not pass silently."""
+    grid = slab_grid([(2.05, 1.05)])
+    with pytest.raises(MapError, match="ignore"):
+        line_of_sight(grid, A, B, ignore_xy=np.array([[np.nan, 1.0]]), ignore_radius_m=0.3)
+    with pytest.raises(MapError, match="ignore"):
+        line_of_sight(grid, A, B, ignore_xy=np.array([[2.0, 1.0]]), ignore_radius_m=math.nan)

@@ -13,10 +13,12 @@ import pytest
 from sensors.errors import TrajectoryError
 from sensors.trajio import (
     G2oGraph,
+    as_logged,
     read_carmen_odometry,
     read_g2o,
     read_relations,
     read_tum,
+    tum_rows,
     write_g2o,
     write_tum,
 )
@@ -211,3 +213,46 @@ def test_tum_keeps_the_digits_asked_for(tmp_path: Path) -> None:
     np.testing.assert_allclose(poses, [[1.0, 2.0, 0.0]])
     with pytest.raises(TrajectoryError, match=r"need stamps \(N,\) and poses \(N, 3\)"):
         write_tum(tmp_path / "bad.tum", np.array([1.0, 2.0]), np.zeros((1, 3)))
+
+
+def random_planar_poses(rng: np.random.Generator, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stamps and poses whose yaws include the wrap: at and next to ±π, and zero."""
+    stamps = np.cumsum(rng.uniform(0.01, 0.3, count)) + rng.uniform(0.0, 1000.0)
+    yaw = rng.uniform(-math.pi, math.pi, count)
+    near_pi = [math.pi, -math.pi, math.pi - 1e-7, -math.pi + 1e-7, math.pi - 3e-10, 0.0, -0.0]
+    yaw[: len(near_pi)] = near_pi
+    poses = np.column_stack([rng.normal(size=(count, 2)) * 20.0, yaw])
+    return stamps, poses
+
+
+def test_tum_rows_are_the_lines_write_tum_writes(tmp_path: Path) -> None:
+    stamps, poses = random_planar_poses(np.random.default_rng(7), 40)
+    for decimals, z_m in [(9, 0.0), (6, 0.0), (4, 0.45)]:
+        path = write_tum(tmp_path / f"t{decimals}.tum", stamps, poses, z_m=z_m, decimals=decimals)
+        lines = path.read_text(encoding="utf-8").splitlines()
+        assert lines[0].startswith("#")
+        assert lines[1:] == tum_rows(stamps, poses, z_m=z_m, decimals=decimals)
+    row = tum_rows(np.array([2.0]), np.array([[1.0, -2.0, math.pi / 2]]), decimals=3)
+    assert row == ["2.000 1.000 -2.000 0.000 0 0 0.707106781 0.707106781"]
+
+
+def test_as_logged_is_bitwise_what_read_tum_reads_back(tmp_path: Path) -> None:
+    rng = np.random.default_rng(11)
+    for trial in range(3):
+        stamps, poses = random_planar_poses(rng, 200)
+        logged_stamps, logged_poses = as_logged(stamps, poses, decimals=6)
+        path = write_tum(tmp_path / f"odo{trial}.tum", stamps, poses, decimals=6)
+        read_stamps, read_poses = read_tum(path)
+        assert logged_stamps.dtype == read_stamps.dtype == np.float64
+        assert logged_poses.shape == read_poses.shape == (200, 3)
+        np.testing.assert_array_equal(logged_stamps, read_stamps)
+        np.testing.assert_array_equal(logged_poses, read_poses)
+        # The numbers are the logged ones, not the inputs: rounded to a micrometre.
+        assert np.abs(logged_poses[:, :2] - poses[:, :2]).max() <= 0.5e-6 + 1e-12
+        assert np.abs(logged_poses[:, :2] - poses[:, :2]).max() > 0.0
+        yaw_error = np.angle(np.exp(1j * (logged_poses[:, 2] - poses[:, 2])))
+        assert np.abs(yaw_error).max() < 1e-8
+        assert (np.abs(logged_poses[:, 2]) <= math.pi).all()
+    empty_stamps, empty_poses = as_logged(np.zeros(0), np.zeros((0, 3)), decimals=6)
+    assert empty_stamps.shape == (0,)
+    assert empty_poses.shape == (0, 3)

@@ -32,6 +32,7 @@ from mapping.traversability import (
     drivable_space,
     floor_map,
     frontiers,
+    large_unknown,
     line_of_sight,
 )
 from sensors.sim.planner import FreeSpace
@@ -42,7 +43,7 @@ __all__ = ["Explorer", "MapView", "ScanGoal"]
 #: to go to the target frontier; a station heading from which the mapper sees the reference's
 #: beacon at once (a mutual observation that ties the turn) gains this many.
 _PATH_COST = 20.0
-_FRONTIER_COST = 100.0
+_FRONTIER_COST = 200.0
 _STATION_TIE_BONUS = 150.0
 #: Two poses closer than this (m, rad) are the same pose.
 _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
@@ -97,8 +98,11 @@ class MapView:
         self.space: FreeSpace = drivable_space(
             self.floor, robot_radius_m=self.radius_m, margin_m=margin_m
         )
+        # What a scan adds: unknown floor of the regions a frontier leads to (the shadows of
+        # furniture, never resolved, would keep the pair busy where it already is).
+        self.unexplored = large_unknown(self.floor, _MIN_UNKNOWN_M2)
         self.coverage = CoverageModel(
-            self.space, ~self.floor.obstacle, ~self.floor.unknown, self.floor.obstacle
+            self.space, ~self.floor.obstacle, ~self.unexplored, self.floor.obstacle
         )
         self.geometry = BeaconGeometry(config, line_clear=self._clear)
         self._graph: tuple[object, np.ndarray] | None = None

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
 from estimation.search.stations import (
@@ -85,7 +86,13 @@ class ConcurrentLocalizer:
     def submit(self, stations: list[Station], estimate: dict[int, np.ndarray],
                factors: list[FactorSpec], key: int, mission_s: float) -> None:  # fmt: skip
         """Start the searches of station ``key``; the previous job must have been collected."""
-        label = next(s.label for s in stations if s.key == key)
+        if self._job is not None:
+            raise EstimationError(
+                f"station {self._job.station}'s searches are still to be collected"
+            )
+        label = next((s.label for s in stations if s.key == key), None)
+        if label is None:
+            raise EstimationError(f"station {key} is not among the stations to search")
         args = (stations, estimate, factors, self.params, key)
         if self._executor is None:
             future: Future[Localized] = Future()

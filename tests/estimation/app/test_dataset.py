@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from estimation.app.dataset import decode_robot
+from estimation.app.dataset import LmsDecoder, RobotStream, decode_robot
 from sensors.errors import SensorError
-from sensors.lms200.capture import CaptureWriter
+from sensors.lms200.capture import CaptureReader, CaptureWriter
 from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.lms200.protocol.scan import encode_scan, scan_interval_s
 from sensors.lms200.protocol.telegram import TURN_S
@@ -61,3 +62,105 @@ def test_a_capture_of_another_variant_is_a_clear_error(tmp_path: Path) -> None:
     other = ScanLimits.for_variant(180, 1.0, unit_mm=True, baud_rate=38400)
     with pytest.raises(SensorError, match=r"all 200 scans are implausible .*\(200 count\)"):
         decode_robot(capture, 1, other)
+
+
+def write_streamed_capture(path: Path, rng: np.random.Generator) -> Path:
+    """300 telegrams as a serial port delivers them: in records of random size (a telegram
+    spans several; some records run a few bytes into the next telegram), each stamped when its
+    last byte came in, with line noise, a telegram whose checksum is broken, one with an
+    impossible scan index (implausible) and a gap of dropped telegrams."""
+    baud = 38400
+    byte_s = 10 / baud
+    turns = round(scan_interval_s(baud, 101, 1.0, True) / TURN_S)
+    stream = bytearray()
+    arrival: list[float] = []  # when each byte of the stream was received (s)
+    cuts: set[int] = set()
+    for k in range(300):
+        if 100 <= k < 104:
+            continue  # dropped: a gap of four telegrams
+        turn = 700 + turns * k
+        index = 3 if k == 200 else turn & 0xFF
+        data = bytearray(encode_scan(rng.uniform(0.5, 7.0, 101), scan_index=index,
+                                     telegram_index=k & 0xFF))  # fmt: skip
+        if k == 150:
+            data[20] ^= 0x40  # the checksum no longer matches
+        if k in (50, 250):
+            data[:0] = bytes([0x02, 0x80, 0xFF, 0x7F, 0x11, 0x02])  # noise with false starts
+        done_s = (turn + 1) * TURN_S + len(data) * byte_s + 0.002
+        arrival += [done_s - (len(data) - 1 - b) * byte_s for b in range(len(data))]
+        cuts.update((len(stream) + rng.integers(1, len(data), int(rng.integers(0, 4)))).tolist())
+        stream += data
+        # A read ends at the telegram's end, or runs on into the next one for a few bytes
+        # (a millisecond or two: the lateness of the stamps stays within what the sequence
+        # check allows).
+        cuts.add(len(stream) + (int(rng.integers(1, 8)) if rng.random() < 0.3 else 0))
+    with CaptureWriter(path, {"baud_rate": baud}) as writer:
+        start = 0
+        for end in [*sorted(c for c in cuts if c < len(stream)), len(stream)]:
+            stamp = arrival[end - 1] + float(rng.uniform(0.0, 0.001))
+            writer.write(stamp, bytes(stream[start:end]))
+            start = end
+    return path
+
+
+def assert_same_stream(got: RobotStream, expected: RobotStream) -> None:
+    assert len(got.scans) == len(expected.scans)
+    np.testing.assert_array_equal(got.times_s, expected.times_s)
+    assert [s.scan_index for s in got.scans] == [s.scan_index for s in expected.scans]
+    assert [s.stamp_s for s in got.scans] == [s.stamp_s for s in expected.scans]
+    for a, b in zip(got.scans, expected.scans, strict=True):
+        np.testing.assert_array_equal(a.raw, b.raw)
+    counters = ("telegrams", "undecodable", "checksum_failures", "bytes_skipped",
+                "truncated_bytes", "corrupt_bytes", "implausible")  # fmt: skip
+    assert {c: getattr(got, c) for c in counters} == {c: getattr(expected, c) for c in counters}
+
+
+def test_lms_decoder_fed_chunk_by_chunk_gives_what_decode_robot_gives(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    capture = write_streamed_capture(tmp_path / "a.cap", rng)
+    expected = decode_robot(capture, 1, LIMITS)
+    # The capture exercises every counter the stream keeps.
+    assert expected.telegrams == 295
+    assert expected.checksum_failures == 1
+    assert expected.implausible == {"sequence": 1}
+    assert len(expected.scans) == 294
+    assert expected.bytes_skipped > 0
+    assert np.diff(expected.times_s).min() > 0
+    reader = CaptureReader(capture)
+    chunks = list(reader.chunks())
+    assert len(chunks) > 400  # telegrams (732 bytes) span several records
+    decoder = LmsDecoder(1, LIMITS, reader.header)
+    completed = [decoder.feed(stamp, chunk) for stamp, chunk in chunks]
+    assert sum(completed) == len(expected.scans)
+    assert max(completed) == 1  # no record holds two whole telegrams
+    decoder.close()
+    assert_same_stream(decoder.stream(reader.truncated_bytes, reader.corrupt_bytes), expected)
+
+
+def test_lms_decoder_does_not_depend_on_how_the_bytes_are_split(tmp_path: Path) -> None:
+    rng = np.random.default_rng(6)
+    capture = write_streamed_capture(tmp_path / "a.cap", rng)
+    expected = decode_robot(capture, 1, LIMITS)
+    reader = CaptureReader(capture)
+    chunks = list(reader.chunks())
+    for trial in range(3):
+        decoder = LmsDecoder(1, LIMITS, reader.header)
+        midway: RobotStream | None = None
+        for n, (stamp, chunk) in enumerate(chunks):
+            # Each record in pieces (single bytes and empty pieces included), same stamp.
+            cuts = np.sort(rng.integers(0, len(chunk) + 1, int(rng.integers(0, 6))))
+            for a, b in itertools.pairwise([0, *cuts.tolist(), len(chunk)]):
+                decoder.feed(stamp, chunk[a:b])
+            if n == len(chunks) // 2 and trial == 0:
+                midway = decoder.stream()
+        decoder.close()
+        assert_same_stream(decoder.stream(reader.truncated_bytes, reader.corrupt_bytes), expected)
+        if midway is not None:
+            # The times so far are the whole stream's, but for the anchor: the earliest
+            # arrival so far, which later scans can only lower (by a few ms of latency).
+            count = len(midway.times_s)
+            assert 0 < count < len(expected.scans)
+            shift = midway.times_s - expected.times_s[:count]
+            assert shift.min() >= 0.0
+            assert shift.max() < 0.005
+            np.testing.assert_allclose(shift, shift[0], atol=1e-9)

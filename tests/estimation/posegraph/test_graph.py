@@ -102,6 +102,60 @@ def test_odometry_sigmas_grow_with_distance_and_turn() -> None:
     assert math.sqrt(cov[2, 2]) == pytest.approx(math.radians(0.5) + math.radians(2.0))
 
 
+def test_odometry_sigmas_follow_the_motion_driven_not_the_net_move() -> None:
+    """A sideways step of 1 m (forward 1 m, left 1 m, back to the heading: 1.57 rad of turns
+    each way, 3 rad in all, 2 m driven) ends at net yaw 0 and a net 1 m."""
+    delta = np.array([0.0, 1.0, 0.0])
+    sigmas = (0.01, 0.05, math.radians(0.5), math.radians(2.0))
+    net = odometry_covariance(delta, *sigmas)
+    driven = odometry_covariance(delta, *sigmas, motion=(2.0, 3.0))
+    assert math.sqrt(net[0, 0]) == pytest.approx(0.01 + 0.05 * 1.0)
+    assert math.sqrt(net[2, 2]) == pytest.approx(math.radians(0.5))  # no net turn
+    assert math.sqrt(driven[0, 0]) == pytest.approx(0.01 + 0.05 * 2.0)
+    assert math.sqrt(driven[1, 1]) == pytest.approx(0.01 + 0.05 * 2.0)
+    assert math.sqrt(driven[2, 2]) == pytest.approx(math.radians(0.5) + math.radians(2.0) * 3.0)
+    np.testing.assert_array_equal(driven, np.diag(np.diag(driven)))
+    # A turn in place: no distance, but the angle turned (not the net yaw, wrapped to 0.28 rad).
+    spun = odometry_covariance(np.array([0.0, 0.0, 2 * math.pi - 6.0]), *sigmas,
+                               motion=(0.0, 6.0))  # fmt: skip
+    assert math.sqrt(spun[0, 0]) == pytest.approx(0.01)
+    assert math.sqrt(spun[2, 2]) == pytest.approx(math.radians(0.5) + math.radians(2.0) * 6.0)
+    # motion=None is the net move: the old behaviour.
+    np.testing.assert_array_equal(odometry_covariance(delta, *sigmas, motion=None), net)
+
+
+def test_a_moves_motion_sets_its_factors_covariance() -> None:
+    builder = GraphBuilder(S)
+    builder.add(Start("a", 0, (0.0, 0.0, 0.0)))
+    delta = (0.0, 1.0, 0.0)
+    plain = builder.add(Move("a", 1, delta)).factors[0]
+    driven = builder.add(Move("a", 2, delta, motion=(2.0, 3.0))).factors[0]
+    sigmas = (S.odometry_sigma_m, S.odometry_sigma_per_m, S.odometry_sigma_rad,
+              S.odometry_sigma_rad_per_rad)  # fmt: skip
+    np.testing.assert_array_equal(plain.covariance, odometry_covariance(np.array(delta), *sigmas))
+    np.testing.assert_array_equal(
+        driven.covariance, odometry_covariance(np.array(delta), *sigmas, motion=(2.0, 3.0))
+    )
+    assert driven.covariance[2, 2] > 50 * plain.covariance[2, 2]
+    assert driven.kind == "odometry"
+    assert driven.keys == (pose_key("a", 1), pose_key("a", 2))
+    np.testing.assert_array_equal(driven.measurement, delta)
+    # The motion changes the uncertainty only, not the guess.
+    np.testing.assert_allclose(builder.guesses[pose_key("a", 2)], [0.0, 2.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("motion", [(math.nan, 0.0), (1.0, math.inf), (-1.0, 0.0), (1.0, -0.5)])
+def test_a_move_with_an_impossible_motion_is_an_error(motion: tuple[float, float]) -> None:
+    """Distance driven and angle turned are finite and >= 0, as ``Move.delta`` is checked for
+    being finite: otherwise the factor's covariance is NaN, or its sigmas shrink with the
+    motion (down to 0 and below) instead of growing."""
+    builder = GraphBuilder(S)
+    builder.add(Start("a", 0, (0.0, 0.0, 0.0)))
+    with pytest.raises(EstimationError, match=r"Move\.motion"):
+        builder.add(Move("a", 1, (1.0, 0.0, 0.0), motion=motion))
+    assert [f.kind for f in builder.factors] == ["prior"]
+
+
 def two_robots() -> tuple[GraphBuilder, np.ndarray, np.ndarray]:
     builder = GraphBuilder(S)
     T_a, T_b = np.array([0.0, 0.0, 0.0]), np.array([2.0, 1.5, -2.0])

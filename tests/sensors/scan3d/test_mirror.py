@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,10 +13,12 @@ from hypothesis import strategies as st
 from estimation.app.resources import resolve_builtin
 from sensors.errors import SensorError
 from sensors.geometry.frames import scanner_pose_matrix
-from sensors.lms200.protocol.scan import decode_scan
+from sensors.lms200.protocol.scan import Scan, decode_scan
 from sensors.lms200.protocol.stream import StreamParser, Telegram
+from sensors.lms200.protocol.telegram import TURN_S
 from sensors.scan3d.mirror import (
     MirrorGeometry,
+    ScanClock,
     assemble_sweeps,
     elevation_at,
     estimate_mirror,
@@ -170,3 +173,69 @@ def test_no_edge_on_signature_is_an_error(essex_scene: RaycastScene) -> None:
     times = scan_times(decoded)
     with pytest.raises(SensorError, match="no edge-on signature"):
         estimate_mirror(decoded[:30], times[:30], GEOMETRY)
+
+
+def counter_scans(turns: np.ndarray, stamps: np.ndarray, indexed: bool = True) -> list[Scan]:
+    """One-sample scans at mirror turns ``turns`` (counter mod 256), received at ``stamps``."""
+    return [
+        Scan(np.zeros(1), np.zeros(1), np.zeros(1, np.uint8), np.zeros(1, np.uint8), 0.001,
+             scan_index=int(t % 256) if indexed else None, stamp_s=float(s))
+        for t, s in zip(turns, stamps, strict=True)
+    ]  # fmt: skip
+
+
+def test_scan_clock_fed_scan_by_scan_gives_scan_times_of_the_scans_so_far() -> None:
+    rng = np.random.default_rng(3)
+    # Steps of 6 turns, gaps of one to a few telegrams, and gaps past the 256-turn wrap.
+    steps = rng.choice([6, 6, 6, 12, 18], 300)
+    steps[[40, 41, 120, 200]] = [250, 262, 600, 1030]
+    turns = 17 + np.concatenate([[0], np.cumsum(steps)])
+    # Receive latency varies: the anchor (running minimum) moves several times.
+    latency = rng.uniform(0.0, 0.06, len(turns))
+    stamps = 3.0 + turns * TURN_S + latency
+    scans = counter_scans(turns, stamps)
+    clock = ScanClock()
+    for n, scan in enumerate(scans, 1):
+        clock.add(scan)
+        if n in (1, 2, 41, 42, 43, 150, len(scans)) or n % 37 == 0:
+            np.testing.assert_array_equal(clock.times(), scan_times(scans[:n]))
+            # Independently: the true turns since the first scan, anchored at or before the
+            # earliest-arriving stamp so far.
+            relative = (turns[:n] - turns[0]) * TURN_S
+            np.testing.assert_array_equal(clock.times(), relative + np.min(stamps[:n] - relative))
+    times = clock.times()
+    assert len(times) == len(scans)
+    np.testing.assert_allclose(np.diff(times), np.diff(turns) * TURN_S, atol=1e-9)
+    assert (times <= stamps + 1e-12).all()
+    assert np.min(stamps - times) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_scan_clock_without_indices_gives_the_stamps() -> None:
+    turns = np.arange(0, 60, 6)
+    stamps = 1.0 + turns * TURN_S + np.linspace(0.0, 0.02, len(turns))
+    clock = ScanClock()
+    for scan in counter_scans(turns, stamps, indexed=False):
+        clock.add(scan)
+    np.testing.assert_array_equal(clock.times(), stamps)
+    np.testing.assert_array_equal(scan_times(counter_scans(turns, stamps, indexed=False)), stamps)
+    # One scan without an index among indexed ones: the stream falls back to the stamps.
+    mixed = counter_scans(turns, stamps)
+    mixed[4] = counter_scans(turns[4:5], stamps[4:5], indexed=False)[0]
+    clock = ScanClock()
+    for scan in mixed:
+        clock.add(scan)
+    np.testing.assert_array_equal(clock.times(), stamps)
+    np.testing.assert_array_equal(scan_times(mixed), stamps)
+    assert ScanClock().times().shape == (0,)
+
+
+def test_a_scan_without_a_stamp_cannot_be_placed_in_time() -> None:
+    scans = counter_scans(np.array([0, 6]), np.array([1.0, 1.08]))
+    unstamped = replace(scans[1], stamp_s=None)
+    clock = ScanClock()
+    clock.add(scans[0])
+    with pytest.raises(SensorError, match="every scan needs a host stamp"):
+        clock.add(unstamped)
+    np.testing.assert_array_equal(clock.times(), scan_times(scans[:1]))  # nothing was added
+    with pytest.raises(SensorError, match="every scan needs a host stamp"):
+        scan_times([scans[0], unstamped])

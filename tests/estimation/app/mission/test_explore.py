@@ -1,0 +1,201 @@
+"""The planner's view of the estimated map: drivable space around where robots stood, snapping
+to it, path distances, and the explorer's bookkeeping (poses taken, frontiers given up)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimation.app.config import Config
+from estimation.app.mission import explore
+from estimation.app.mission.explore import Explorer, MapView
+from mapping.grid import GridParams, OccupancyGrid
+from mapping.traversability import Frontier
+
+RES = 0.1
+CONFIG = Config()
+BODY_AT = (2.0, 2.0)  # another robot's scans put this robot's body in the map here
+UNSEEN_AT = (4.0, 1.0)  # the floor under a robot that never moved away: nobody saw it
+
+
+def two_rooms() -> OccupancyGrid:
+    """Seen from inside: room A (x 0-6 m) and room B (x 6.1-8 m) under a 2.5 m ceiling, 4 m
+    deep, joined by a door (y 1.5-2.5 m, 2.1 m high) in the wall at x = 6; the back 1.2 m of
+    room B was never seen; behind a wall without a door at x = 8, a closet (x 8.1-10 m) seen
+    free (through a window, say). A robot body stands at ``BODY_AT``, unseen floor under
+    another robot at ``UNSEEN_AT``."""
+    i, j, k = np.meshgrid(np.arange(-1, 101), np.arange(-1, 41), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    x, y, z = ((cells + 0.5) * RES).T
+    wall = (cells[:, 0] == -1) | (cells[:, 0] == 100) | (cells[:, 1] == -1) | (cells[:, 1] == 40)
+    wall |= cells[:, 0] == 80
+    door = (y > 1.5) & (y < 2.5) & (z < 2.1)
+    wall |= (cells[:, 0] == 60) & ~door
+    body = (np.hypot(x - BODY_AT[0], y - BODY_AT[1]) <= 0.3) & (z < 0.4)
+    unseen = ((x > 6.8) & (x < 8.0) & ~wall) | (
+        (np.hypot(x - UNSEEN_AT[0], y - UNSEEN_AT[1]) <= 0.35) & (z < 0.5)
+    )
+    params = GridParams(resolution_m=RES)
+    values = np.where(wall | body, params.logodds_max, params.logodds_min)
+    return OccupancyGrid.from_cells(params, cells[~unseen], values[~unseen])
+
+
+@pytest.fixture(scope="module")
+def grid() -> OccupancyGrid:
+    return two_rooms()
+
+
+@pytest.fixture(scope="module")
+def view(grid: OccupancyGrid) -> MapView:
+    return MapView(grid, CONFIG, np.array([BODY_AT, UNSEEN_AT]))
+
+
+def test_where_robots_stood_becomes_drivable(grid: OccupancyGrid, view: MapView) -> None:
+    bare = MapView(grid, CONFIG)
+    for xy in (BODY_AT, UNSEEN_AT):
+        assert not bare.space.is_free(xy)
+        assert view.space.is_free(xy)
+    # The body was an obstacle and the floor beneath the other robot unknown; now both are free.
+    assert bare.floor.obstacle[bare.space.cell(BODY_AT)]
+    assert bare.floor.unknown[bare.space.cell(UNSEEN_AT)]
+    assert view.floor.free[view.space.cell(BODY_AT)]
+    assert view.floor.free[view.space.cell(UNSEEN_AT)]
+    # Only there: the walls, the door and the unseen back of room B are as they were.
+    changed = (view.floor.free != bare.floor.free) | (view.floor.obstacle != bare.floor.obstacle)
+    rows, cols = np.nonzero(changed)
+    centres = view.floor.lower_xy + (np.column_stack([cols, rows]) + 0.5) * RES
+    near = np.minimum(np.hypot(*(centres - BODY_AT).T), np.hypot(*(centres - UNSEEN_AT).T))
+    assert near.max() <= CONFIG.robot.footprint_radius_m + 0.05 + RES + 1e-9
+    assert not view.space.is_free((6.05, 3.5))  # the wall beside the door
+    assert view.space.is_free((6.05, 2.0))  # the door
+    assert not view.space.is_free((7.5, 2.0))  # nobody saw it
+    # The known map has a metre of unknown floor around it, so it does not end at its walls.
+    assert view.floor.lower_xy[0] == pytest.approx(-1.1, abs=1e-9)
+    assert view.floor.unknown[:, 0].all()
+
+
+def test_free_near_snaps_to_the_nearest_drivable_cell_within_reach(view: MapView) -> None:
+    space = view.space
+    inside = np.array([3.0, 3.0])
+    np.testing.assert_array_equal(view.free_near(inside), inside)
+    rows, cols = np.nonzero(space.free)
+    centres = space.lower_xy + (np.column_stack([cols, rows]) + 0.5) * RES
+    for xy in [(0.2, 2.0), (3.0, 3.75), (6.05, 1.0), (5.8, 0.1)]:
+        assert not space.is_free(xy)
+        got = view.free_near(np.array(xy))
+        assert got is not None
+        assert space.is_free(got)
+        nearest = np.hypot(*(centres - xy).T).min()
+        assert math.dist(got, xy) == pytest.approx(nearest, abs=1e-9)
+        assert math.dist(got, xy) <= 0.6
+    # Beyond reach: outside the rooms, or deep in the unseen part of room B.
+    for xy in [(-0.5, 2.0), (7.5, 2.0)]:
+        assert view.free_near(np.array(xy)) is None
+    assert view.free_near(np.array([7.5, 2.0]), reach_m=1.2) is not None
+    assert view.free_near(np.array([50.0, 50.0])) is None  # off the map
+
+
+def test_distances_from_are_path_lengths(view: MapView) -> None:
+    start = np.array([1.0, 1.0])
+    reach = view.distances_from([start])
+    assert view.at(reach, start) == 0.0
+    # In open floor the 8-connected path is within 8 % of the straight line, never shorter.
+    for xy in [(4.5, 3.2), (1.0, 3.4), (5.4, 0.6), (3.0, 1.0)]:
+        straight = math.dist(start, xy)
+        assert straight - RES <= view.at(reach, xy) <= 1.082 * straight + 2 * RES
+    # Into room B through the door: longer than the straight line through the wall.
+    corner = (6.5, 3.5)
+    via_door = math.dist(start, (6.05, 2.3)) + math.dist((6.05, 2.3), corner)
+    assert view.at(reach, corner) == pytest.approx(via_door, rel=0.1)
+    assert view.at(reach, corner) > math.dist(start, corner) + 0.3
+    # Walled off, unseen, off the map: unreachable.
+    for xy in [(9.0, 2.0), (7.5, 2.0), (6.05, 3.5), (20.0, 2.0)]:
+        assert view.at(reach, xy) == math.inf
+    # From the nearer of two sources; from nowhere drivable, nothing is reachable.
+    both = view.distances_from([start, np.array([5.5, 2.0])])
+    assert view.at(both, (5.0, 2.0)) == pytest.approx(0.5, abs=RES)
+    assert (both <= reach).all()
+    closet = view.distances_from([np.array([9.05, 2.05])])  # cell centres: exact distances
+    assert view.at(closet, (9.05, 3.05)) == pytest.approx(1.0, abs=1e-9)
+    assert view.at(closet, (9.55, 2.55)) == pytest.approx(0.5 * math.sqrt(2), abs=1e-9)
+    assert view.at(closet, start) == math.inf
+    assert np.isinf(view.distances_from([np.array([6.05, 3.5])])).all()  # inside the wall
+    assert np.isinf(view.distances_from([])).all()
+
+
+def test_poses_already_taken_are_the_same_within_30_cm_and_30_degrees() -> None:
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    explorer.taken.append(np.array([2.0, 2.0, math.radians(178.0)]))
+    assert explorer._taken(np.array([2.0, 2.0, math.radians(178.0)]))
+    assert explorer._taken(np.array([2.2, 1.8, math.radians(-160.0)]))  # 22° across ±180°
+    assert explorer._taken(np.array([2.0, 2.0, math.radians(178.0 + 360.0)]))
+    assert not explorer._taken(np.array([2.25, 2.25, math.radians(178.0)]))  # 35 cm away
+    assert not explorer._taken(np.array([2.0, 2.0, math.radians(140.0)]))  # 38° off
+    assert not Explorer(CONFIG, (1.5, 4.5))._taken(np.zeros(3))
+
+
+def test_a_scan_pose_taken_is_not_offered_again(view: MapView) -> None:
+    explorer = Explorer(CONFIG, (1.5, 3.5))
+    reference = np.array([2.5, 2.0, 0.0])
+    mapper = np.array([1.0, 1.0, 0.0])
+    first = explorer.scan_pose(view, reference, mapper, [reference], None, [])
+    assert first is not None
+    assert view.space.is_free(first.pose[:2])
+    assert view.geometry.mutual(reference, first.pose, (1.5, 3.5))
+    np.testing.assert_allclose(first.path[0], mapper[:2])
+    np.testing.assert_allclose(first.path[-1], first.pose[:2])
+    explorer.taken.append(first.pose)
+    second = explorer.scan_pose(view, reference, mapper, [reference], None, [])
+    assert second is not None
+    assert not explorer._taken(second.pose)  # another place, or the same facing elsewhere
+    assert second.score <= first.score  # the best was the first
+    # ``exclude`` (a pose that failed) keeps the mapper 30 cm away from it, whatever the yaw.
+    third = Explorer(CONFIG, (1.5, 3.5)).scan_pose(view, reference, mapper, [reference], None,
+                                                   [first.pose])  # fmt: skip
+    assert third is not None
+    assert math.dist(third.pose[:2], first.pose[:2]) >= 0.3
+
+
+def frontier_at(x: float, y: float) -> Frontier:
+    return Frontier(np.zeros((5, 2), dtype=np.int64), np.array([x, y]), 5)
+
+
+def test_a_frontier_that_does_not_come_closer_is_given_up(view: MapView) -> None:
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    robots = [np.array([1.0, 1.0])]
+    found = explorer.frontier(view, robots)
+    assert found is not None
+    assert 6.1 < found.centroid_xy[0] < 6.9  # before the unseen back of room B
+    assert found.size >= 5
+    distance = float(np.min(view.distances_from(robots)[found.cells[:, 0], found.cells[:, 1]]))
+    assert distance == pytest.approx(math.dist(robots[0], found.centroid_xy), rel=0.2)
+    explorer.progress(found, distance)  # a new target
+    assert explorer.target is not None
+    for station in range(explore._PATIENCE):
+        assert explorer.given_up == []
+        explorer.progress(found, distance - 0.2 * station)  # closer, but by less than 30 cm
+    assert explorer.target is None
+    assert len(explorer.given_up) == 1
+    np.testing.assert_allclose(explorer.given_up[0], found.centroid_xy)
+    assert explorer.frontier(view, robots) is None  # the only frontier was given up
+
+
+def test_a_frontier_that_comes_closer_is_kept() -> None:
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    explorer.progress(frontier_at(6.5, 2.0), 6.0)
+    for station in range(4 * explore._PATIENCE):
+        explorer.progress(frontier_at(6.5, 2.0 + 0.1 * station), 5.5 - 0.5 * station)
+    assert explorer.given_up == []
+    assert explorer.target is not None
+    assert explorer.target.best_m == pytest.approx(5.5 - 0.5 * (4 * explore._PATIENCE - 1))
+    # Stalling counts from the last gain; a frontier that jumped (> 1.5 m) is a new target.
+    explorer.progress(frontier_at(6.5, 2.8), 10.0)
+    assert explorer.target.stale == 1
+    explorer.progress(frontier_at(3.0, 2.8), 10.0)
+    assert explorer.target.stale == 0
+    assert explorer.target.best_m == 10.0
+    explorer.progress(None, 0.0)
+    assert explorer.target is None
+    assert explorer.given_up == []
