@@ -72,6 +72,7 @@ __all__ = [
     "prepare",
     "run_batch",
     "run_isam",
+    "unobserved_stations",
 ]
 
 Progress = Callable[[str], None]
@@ -261,6 +262,7 @@ def _finish(
         "factors": len(factors),
         "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
         "dropped_poses": [key_label(k) for k in solution.dropped],
+        "stations_without_mutual": unobserved_stations(prepared, factors),
         "timings_s": timings.as_json(),
         **extra,
     }
@@ -269,6 +271,20 @@ def _finish(
     )
     write_results(output, config)
     return output
+
+
+def unobserved_stations(prepared: Prepared, factors: list[FactorSpec]) -> list[dict[str, Any]]:
+    """The reference stations that no mutual observation ties (their own pose in none): they
+    rest on odometry and on what their station searches found (the link factors they got)."""
+    mutual = {k for f in factors if f.kind == "mutual" for k in f.keys}
+    searched: dict[int, int] = {}
+    for f in factors:
+        if f.kind not in ("mutual", "odometry", "prior"):
+            for k in f.keys:
+                searched[k] = searched.get(k, 0) + 1
+    found = stations(prepared.dataset, mapping_sweeps(prepared.dataset, prepared.sweeps))
+    return [{"station": s.label, "search_factors": searched.get(s.key, 0)}
+            for s in found if s.key not in mutual]  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -153,6 +153,14 @@ def batch(
         f"{r.get('occupied_voxels', 0):,} occupied voxels; "
         f"{r['timings_s']['total']:.1f} s"
     )
+    unobserved = r.get("stations_without_mutual", [])
+    if unobserved:
+        make_console().print(
+            "  stations without a mutual observation (odometry and station searches only): "
+            + ", ".join(
+                f"{s['station']} ({s['search_factors']} search factors)" for s in unobserved
+            )
+        )
     make_console().print(f"  wrote {output.out_dir}/")
     export_mcap(output.out_dir, mcap, dataset)
     fail_unplaced(r, output.out_dir)

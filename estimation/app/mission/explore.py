@@ -45,10 +45,13 @@ __all__ = ["Explorer", "MapView", "ScanGoal"]
 _PATH_COST = 20.0
 _FRONTIER_COST = 200.0
 _STATION_TIE_BONUS = 150.0
+#: A heading facing at least this much unexplored floor (cells) may be taken before any mapper
+#: pose there is known, at this cost (cells).
+_LOOK_FIRST_CELLS, _LOOK_FIRST_COST = 200, 300.0
 #: Two poses closer than this (m, rad) are the same pose.
 _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
 #: A frontier whose distance did not shrink for this many stations is given up.
-_PATIENCE = 2
+_PATIENCE = 3
 #: A frontier counts when it has this many cells and borders at least this much unknown floor
 #: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
@@ -267,9 +270,12 @@ class Explorer:
         return out
 
     def heading(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
-                others: list[np.ndarray], frontier: Frontier | None) -> float | None:  # fmt: skip
+                others: list[np.ndarray], frontier: Frontier | None,
+                look_first: bool = False) -> float | None:  # fmt: skip
         """The reference's heading for its next station, or None if from no heading a
-        mapper pose around it would see its beacon."""
+        mapper pose around it would see its beacon. With ``look_first``, a heading facing
+        enough unexplored floor counts even before a mapper pose there is known: the
+        reference's own sweep at the station shows the floor the mapper will drive on."""
         start = view.free_near(mapper[:2])
         if start is None:
             return None
@@ -279,10 +285,14 @@ class Explorer:
         for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
             pose = np.array([reference[0], reference[1], heading])
             candidates = self._candidates(view, pose, mapper, others, reachable, [])
-            if not candidates:
+            own = view.coverage.gain(pose)
+            if candidates:
+                values = [self._value(view, c, reachable, goal) for c in candidates[::2]]
+                score = max(values) + own
+            elif look_first and own >= _LOOK_FIRST_CELLS:
+                score = own - _LOOK_FIRST_COST
+            else:
                 continue
-            values = [self._value(view, c, reachable, goal) for c in candidates[::2]]
-            score = max(values) + view.coverage.gain(pose)
             if view.geometry.mutual(pose, mapper, (0.5, self.config.beacon.max_range_m)):
                 score += _STATION_TIE_BONUS
             if score > best_score:

@@ -372,25 +372,32 @@ class MissionLoop:
         """One station: the reference turns to its best heading (after the first), the mapper
         takes its scan poses around it. None when no scan pose was possible."""
         at: list[float] | None = None
-        if k > 0:
-            view = self._view()
-            if view is None:
-                return None
-            ref_pose, map_pose = self.pose(reference), self.pose(mapper)
-            others = [self.pose(n) for n in self.robots if n not in (reference, mapper)]
-            heading = explorer.heading(view, ref_pose, map_pose, [ref_pose, *others], frontier)
-            if heading is None:
-                return None
-            target = np.array([ref_pose[0], ref_pose[1], heading])
-            turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
-            if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
-                at = _as_spec(target)
-                self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
-                explorer.taken.append(self.pose(reference))
-        station = _Station(reference, self.index[reference], self.now_s)
         scans: list[list[float]] = []
-        for _ in range(self.mission.auto.scans_per_station):
-            if not self._scan(explorer, reference, mapper, frontier, scans):
+        station = _Station(reference, self.index[reference], self.now_s)
+        # First a heading that may face floor nobody has seen yet (the turn's own sweep shows
+        # it); if no scan pose comes of it, one from which a scan pose is already known.
+        for look_first in (True, False) if k > 0 else (False,):
+            if k > 0:
+                view = self._view()
+                if view is None:
+                    return None
+                ref_pose, map_pose = self.pose(reference), self.pose(mapper)
+                others = [self.pose(n) for n in self.robots if n not in (reference, mapper)]
+                heading = explorer.heading(view, ref_pose, map_pose, [ref_pose, *others],
+                                           frontier, look_first)  # fmt: skip
+                if heading is None:
+                    continue
+                target = np.array([ref_pose[0], ref_pose[1], heading])
+                turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
+                if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
+                    at = _as_spec(target)
+                    self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
+                    explorer.taken.append(self.pose(reference))
+            station = _Station(reference, self.index[reference], self.now_s)
+            for _ in range(self.mission.auto.scans_per_station):
+                if not self._scan(explorer, reference, mapper, frontier, scans):
+                    break
+            if scans:
                 break
         self.trace.append({
             "step": k, "reference": f"{reference}{self.index[reference]}",

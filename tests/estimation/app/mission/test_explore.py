@@ -175,7 +175,7 @@ def test_a_frontier_that_does_not_come_closer_is_given_up(view: MapView) -> None
     assert explorer.target is not None
     for station in range(explore._PATIENCE):
         assert explorer.given_up == []
-        explorer.progress(found, distance - 0.2 * station)  # closer, but by less than 30 cm
+        explorer.progress(found, distance - 0.05 * station)  # closer, but by less than 30 cm
     assert explorer.target is None
     assert len(explorer.given_up) == 1
     np.testing.assert_allclose(explorer.given_up[0], found.centroid_xy)

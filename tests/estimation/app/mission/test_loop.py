@@ -13,7 +13,7 @@ import yaml
 
 from estimation.app.mission.fleet import SimulatedFleet
 from estimation.app.mission.loop import MissionLoop
-from estimation.app.pipeline import prepare, run_batch
+from estimation.app.pipeline import prepare, run_batch, unobserved_stations
 from estimation.app.sim.simulate import (
     SimulationResult,
     mission_config,
@@ -21,6 +21,7 @@ from estimation.app.sim.simulate import (
     run_simulation,
 )
 from estimation.posegraph.events import Move, Observe, Start
+from estimation.posegraph.keys import pose_key
 from sensors.sim.mission import MissionError, load_mission
 from sensors.sim.world import load_world
 from sensors.trajio import read_tum
@@ -71,6 +72,15 @@ def test_the_loop_records_a_dataset_that_batch_reproduces(
         assert np.abs(live[:, :2] - offline[:, :2]).max() < 1e-3
         assert np.abs(np.angle(np.exp(1j * (live[:, 2] - offline[:, 2])))).max() < 1e-3
     assert out.report["observations"] >= 4
+    assert out.report["stations_without_mutual"] == []
+    # Without their mutual factors every station is listed, with its search factors.
+    prepared = prepare(dataset, None, None)
+    factors = [f for f in out.factors if f.kind != "mutual"]
+    listed = unobserved_stations(prepared, factors)
+    assert [s["station"] for s in listed] == ["a0", "b3"]
+    searched = [s["search_factors"] for s in listed]
+    assert searched == [sum(1 for f in factors if f.kind == "global" and key in f.keys)
+                        for key in (pose_key("a", 0), pose_key("b", 3))]  # fmt: skip
 
 
 def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) -> None:
