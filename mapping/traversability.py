@@ -5,7 +5,8 @@ A floor column is an **obstacle** when a cell at the robot's body height is occu
 when enough of those cells were seen empty, and **unknown** otherwise. The robot's centre may
 stand where the disc of its radius (plus a margin) holds no obstacle and its radius holds no
 unknown column either: it never drives into what nobody has seen. **Frontier** cells are free
-cells that reach to within one cell beyond the robot's radius of unknown space; connected
+cells that reach to within one cell beyond the robot's radius of unknown floor that borders
+seen free floor (not of the unknown far side of a wall); connected
 frontier cells form a frontier, and a frontier reachable from the robot is a place to look next.
 """
 
@@ -127,6 +128,10 @@ def frontiers(
     border is never small)."""
     res = floor.resolution_m
     unknown = large_unknown(floor, min_unknown_m2) if min_unknown_m2 > 0 else floor.unknown
+    # Where seen free floor meets unknown floor; unknown space that meets only obstacles (the
+    # far side of a wall) is no frontier.
+    cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+    unknown = unknown & ndimage.binary_dilation(floor.free, structure=cross)
     near_unknown = _distance_to(unknown, res) <= robot_radius_m + 1.5 * res
     edge = space.free & near_unknown
     if from_xy is not None:

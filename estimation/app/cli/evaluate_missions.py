@@ -27,6 +27,9 @@ def evaluate_missions(
     rooms: Annotated[
         int | None, typer.Option("--rooms", help="Rooms per building, 3-15 (default: per seed).")
     ] = None,
+    stations: Annotated[
+        int, typer.Option("--stations", help="Station budget of each mission (1-500).")
+    ] = 60,
     config: ConfigOption = None,
 ) -> None:
     """Generate buildings (seeds SEED … SEED+N−1), fly a mission in each (simulate, batch,
@@ -34,13 +37,13 @@ def evaluate_missions(
     from estimation.app.evaluation.missions import check_arguments, evaluate_missions
     from sensors.yamlio import read_yaml_mapping
 
-    check_arguments(worlds, seed, robots, rooms)
+    check_arguments(worlds, seed, robots, rooms, stations)
     option_config(config)  # a bad --config is one line before any work
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
     err = make_console(stderr=True)
     with err.status(f"evaluating missions in {worlds} buildings…", spinner="dots") as status:
         document = evaluate_missions(
-            worlds, seed, out, robots=robots, rooms=rooms, overrides=overrides,
+            worlds, seed, out, robots=robots, rooms=rooms, stations=stations, overrides=overrides,
             progress=status.update,
         )  # fmt: skip
     print_evaluation(document)

@@ -61,8 +61,10 @@ __all__ = [
 #: The marker kind of an evaluate-missions output folder (``sensors.atomic``).
 KIND = "evaluation"
 ROBOT_NAMES = ("a", "b", "c")
-#: What a mission asks of today's planner (``plan: auto`` on the true world) and of the changes.
-AUTO = {"stations": 30, "scans_per_station": 2}
+#: What a mission asks of the planner (the mission loop, planning on the estimated map, with a
+#: station budget) and of the changes.
+AUTO = {"stations": 60, "scans_per_station": 2, "planner": "map"}
+DEFAULT_STATIONS, MAX_STATIONS = 60, 500
 CHANGES = {"movable_fraction": 0.5, "shift_m": 0.5, "yaw_deg": 30.0}
 #: Distances tried between the first two robots, in order (m).
 PAIR_DISTANCES_M = (2.5, 2.0, 3.0, 3.5, 1.5)
@@ -86,8 +88,12 @@ FAILURES: tuple[type[Exception], ...] = (SensorError, EstimationError, MapError,
 Progress = Callable[[str], None]
 
 
-def check_arguments(worlds: int, seed: int, robots: int, rooms: int | None) -> None:
+def check_arguments(
+    worlds: int, seed: int, robots: int, rooms: int | None, stations: int = DEFAULT_STATIONS
+) -> None:
     """Refuse bad arguments before any work, one line naming the option."""
+    if not 1 <= stations <= MAX_STATIONS:
+        raise ConfigError(f"--stations must be within 1-{MAX_STATIONS}, got {stations}")
     if worlds < 1:
         raise ConfigError(f"--worlds must be >= 1, got {worlds}")
     if seed < 0:
@@ -112,7 +118,11 @@ def furnish_params(config: Config) -> FurnishParams:
 
 
 def generated_mission(
-    world_path: Path | str, seed: int, robots: int, config: Config | None = None
+    world_path: Path | str,
+    seed: int,
+    robots: int,
+    config: Config | None = None,
+    stations: int = DEFAULT_STATIONS,
 ) -> dict[str, Any]:
     """The mission of a generated building, as a mission-file mapping (docs/design.md §12).
 
@@ -136,7 +146,7 @@ def generated_mission(
             for name, pose in zip(ROBOT_NAMES, starts, strict=False)
         ],
         "plan": "auto",
-        "auto": dict(AUTO),
+        "auto": {**AUTO, "stations": stations},
         "changes": dict(CHANGES),
     }
     mission_from_mapping(mission, f"mission of {world_path}")  # what simulate will read back
@@ -301,6 +311,7 @@ def evaluate_missions(
     *,
     robots: int = 2,
     rooms: int | None = None,
+    stations: int = DEFAULT_STATIONS,
     overrides: dict[str, Any] | None = None,
     progress: Progress | None = None,
 ) -> dict[str, Any]:
@@ -312,8 +323,9 @@ def evaluate_missions(
     folder is refused before any work). It is emptied and marked when the run starts, so that
     every path a building's files record is final; each building's folder appears as it is
     done, and ``evaluation.json`` last (a run cut short has none)."""
-    check_arguments(worlds, seed, robots, rooms)
-    run = _Run(robots, rooms, config_from_mapping(overrides or {}, source="--config"), overrides)
+    check_arguments(worlds, seed, robots, rooms, stations)
+    config = config_from_mapping(overrides or {}, source="--config")
+    run = _Run(robots, rooms, stations, config, overrides)
     out = Path(out_dir)
     with replace_directory(out, KIND):
         pass  # an empty folder marked as an evaluation takes the place of an earlier one
@@ -327,6 +339,7 @@ def evaluate_missions(
         "seed": seed,
         "robots": robots,
         "rooms": rooms,
+        "stations": stations,
         "rows": rows,
         "summary": summarise(rows),
     }
@@ -366,6 +379,7 @@ class _Run:
 
     robots: int
     rooms: int | None
+    stations: int
     config: Config
     overrides: dict[str, Any] | None
 
@@ -384,7 +398,7 @@ def _evaluate_building(out: Path, seed: int, run: _Run, step: Progress) -> dict[
         building = write_generated_world(world, seed, run.rooms, furnish_params(run.config))
         row.update(world=building.world.name, rooms=len(building.rooms))
         step("placing the robots")
-        mission = generated_mission(world, seed, run.robots, run.config)
+        mission = generated_mission(world, seed, run.robots, run.config, run.stations)
         row.update(_fly(folder, mission, run.overrides, step))
     except FAILURES as exc:
         row["error"] = " ".join(str(exc).split()) or type(exc).__name__
@@ -403,15 +417,27 @@ def _fly(
     header = f"# coopmap evaluate-missions: the mission of building seed {mission['seed']}\n"
     write_text_atomic(folder / "mission.yaml", header + yaml.safe_dump(mission, sort_keys=False))
     dataset = folder / "dataset"
-    run_simulation(
+    flown = run_simulation(
         folder / "mission.yaml",
         dataset,
         overrides=overrides,
         progress=lambda robot, f: step(f"simulating the sensors of robot {robot} ({f:.0%})"),
+        status=lambda text: step(f"mission loop: {text}"),
     )
-    run_batch(dataset, overrides=overrides, progress=lambda text: step(f"batch: {text}"))
+    if flown.loop is None:  # planned before the mission: the result comes from batch
+        run_batch(dataset, overrides=overrides, progress=lambda text: step(f"batch: {text}"))
     step("evaluating against the ground truth")
-    return scores(evaluate(dataset))
+    row = scores(evaluate(dataset))
+    if flown.loop is not None:
+        row["loop"] = {
+            "stop_reason": flown.loop["stop_reason"],
+            "stations": flown.steps,
+            "work_per_dwell_p99_s": flown.loop["work_per_dwell_s"]["p99"],
+            "localizations_late": sum(
+                not item["in_time"] for item in flown.loop["concurrent_localization"]
+            ),
+        }
+    return row
 
 
 def scores(metrics: dict[str, Any]) -> dict[str, Any]:

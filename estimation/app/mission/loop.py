@@ -64,6 +64,9 @@ __all__ = ["EstimatedMap", "LoopResult", "MissionLoop"]
 Progress = Callable[[str], None]
 #: A fused sweep whose pose estimate moved more than this (m, rad) gets the map re-fused.
 _REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
+#: Exploration ends when the known floor grew by less than this (m²) over this many stations:
+#: what frontiers are left cannot be resolved from the floor the robots can reach.
+_STALL_M2, _STALL_STATIONS = 2.0, 6
 #: A planned mutual observation that failed is retried from this many other poses.
 _RETRIES = 2
 
@@ -325,6 +328,7 @@ class MissionLoop:
         for r in names:
             explorer.taken.append(self.pose(r))
         reason = f"station budget ({auto.stations}) spent"
+        known: list[float] = []  # known floor (m²) after each station
         for k in range(auto.stations):
             self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
             if self.progress is not None:
@@ -361,6 +365,15 @@ class MissionLoop:
                 reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
                 cells = frontier.cells
                 explorer.progress(frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])))
+            if view is not None:
+                res = view.floor.resolution_m
+                known.append(float((~view.floor.unknown).sum()) * res * res)
+                if len(known) > _STALL_STATIONS and (
+                    known[-1] - known[-1 - _STALL_STATIONS] < _STALL_M2
+                ):
+                    reason = (f"exploration stalled: the known floor grew by less than "
+                              f"{_STALL_M2:g} m² over {_STALL_STATIONS} stations")  # fmt: skip
+                    break
             reference, mapper = mapper, names[(names.index(mapper) + 1) % len(names)]
             if mapper == reference:
                 mapper = names[(names.index(reference) + 1) % len(names)]
@@ -517,8 +530,9 @@ class MissionLoop:
             out[label] = finish - order[n + 1][1]
         return out
 
-    def finish(self, out: Path, stop_reason: str) -> LoopResult:
-        """Write the result from the recorded dataset (as ``coopmap isam`` would)."""
+    def finish(self, out: Path, stop_reason: str, dataset_path: Path | None = None) -> LoopResult:
+        """Write the result from the recorded dataset (as ``coopmap isam`` would);
+        ``dataset_path`` is where the dataset will be (``work`` is replaced into it)."""
         counts = self.record()
         loop = self.figures(stop_reason, counts)
         prepared = prepare(self.work, None, self.progress)
@@ -527,8 +541,9 @@ class MissionLoop:
         for event in prepared.events:
             smoother.add(event)
         online = dict(self.estimate)
+        report = {"mission_loop": loop, "dataset": str(dataset_path or self.work)}
         output = finish_isam(prepared, smoother, out, optimize_s=time.perf_counter() - clock,
-                             progress=self.progress, report={"mission_loop": loop})  # fmt: skip
+                             progress=self.progress, report=report)  # fmt: skip
         final = {pose_key(r, i): p for r, poses in output.poses.items() for i, p in poses.items()}
         shared = [k for k in final if k in online]
         # After the report: how far the estimate that steered the mission lay from the final one.

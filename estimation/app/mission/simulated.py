@@ -31,10 +31,12 @@ def fly(
     seed: int,
     work: Path,
     *,
+    final: Path | None = None,
     concurrent: bool = True,
     status: Callable[[str], None] | None = None,
 ) -> LoopResult:
-    """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``."""
+    """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``
+    (which becomes ``final`` when the caller replaces it there)."""
     starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
               for r in mission.robots}  # fmt: skip
     # The body collides when it touches: the planning margin is the loop's, on its own map.
@@ -53,4 +55,4 @@ def fly(
         fleet.close()
         raise
     fleet.close()
-    return loop.finish(work / "result", reason)
+    return loop.finish(work / "result", reason, final)

@@ -181,7 +181,7 @@ def _fly_loop(mission: MissionSpec, config: Config, world: World, space: FreeSpa
     from estimation.app.mission.simulated import fly
 
     with replace_directory(out_dir, "dataset") as work:
-        flown = fly(mission, config, world, space, seed, work, status=status)
+        flown = fly(mission, config, world, space, seed, work, final=out_dir, status=status)
     report = flown.output.report
     return SimulationResult(
         out_dir=out_dir, mission=mission_path.stem, world=world.name, seed=seed,

@@ -44,8 +44,9 @@ def test_generated_mission_places_robots_that_fit_and_see_each_other(
     assert resolve_mission_world(spec, tmp_path / "mission.yaml") == world_path
     assert spec.robot_names() == ["a", "b", "c"][:robots]
     assert (spec.seed, spec.plan, spec.auto.stations, spec.auto.scans_per_station) == (
-        seed, "auto", 30, 2,
+        seed, "auto", 60, 2,
     )  # fmt: skip
+    assert spec.auto.planner == "map"  # the mission loop, on the estimated map
     assert spec.changes is not None
     assert spec.changes.movable_fraction == 0.5
 
@@ -93,8 +94,9 @@ def _cells(stdout: str, seed: int) -> list[str]:
 def test_evaluate_missions_flies_a_building_and_writes_what_it_prints(tmp_path: Path) -> None:
     out = tmp_path / "eval"
     code, stdout, stderr = run(
-        "evaluate-missions", "--worlds", "1", "--seed", "3", "--rooms", "3", "--out", out
-    )
+        "evaluate-missions", "--worlds", "1", "--seed", "3", "--rooms", "3", "--stations", "3",
+        "--out", out,
+    )  # fmt: skip
     assert code == 0, stderr
     document = json.loads((out / "evaluation.json").read_text(encoding="utf-8"))
     (row,) = document["rows"]
@@ -120,6 +122,11 @@ def test_evaluate_missions_flies_a_building_and_writes_what_it_prints(tmp_path: 
     assert 0.5 < row["map_precision"] <= 1.0
     assert 0.5 < row["map_recall"] <= 1.0
     assert 0.0 < row["wall_time_s"] < 600.0
+    loop = row["loop"]  # the mission loop planned it, on the estimated map
+    assert loop["stop_reason"]
+    assert 1 <= loop["stations"] <= 3  # the budget
+    assert 0.0 < loop["work_per_dwell_p99_s"] < 5.0
+    assert loop["localizations_late"] == 0
     summary = document["summary"]
     assert (summary["buildings"], summary["failed"]) == (1, 0)
     assert summary["ate_m"]["worst"] == max(r["ate_m"] for r in row["robots"].values())
@@ -194,6 +201,7 @@ def test_an_out_folder_holding_a_users_files_is_refused(tmp_path: Path) -> None:
         (["--worlds", "1", "--seed", "1", "--robots", "4"], r"--robots must be 2 or 3, got 4"),
         (["--worlds", "1", "--seed", "-1"], r"--seed must be >= 0, got -1"),
         (["--worlds", "1", "--seed", "1", "--rooms", "2"], r"--rooms must be within 3-15, got 2"),
+        (["--worlds", "1", "--seed", "1", "--stations", "0"], r"--stations must be within 1-500"),
     ],
 )
 def test_bad_arguments_are_one_line(tmp_path: Path, args: list[str], pattern: str) -> None:
