@@ -66,7 +66,7 @@ Progress = Callable[[str], None]
 _REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
 #: Exploration ends when the known floor grew by less than this (m²) over this many stations:
 #: what frontiers are left cannot be resolved from the floor the robots can reach.
-_STALL_M2, _STALL_STATIONS = 2.0, 6
+_STALL_M2, _STALL_STATIONS = 2.0, 10
 #: A planned mutual observation that failed is retried from this many other poses.
 _RETRIES = 2
 
