@@ -23,6 +23,7 @@ from sensors.yamlio import regular_file
 __all__ = [
     "G2oGraph",
     "as_logged",
+    "pose_at",
     "read_carmen_odometry",
     "read_g2o",
     "read_relations",
@@ -125,6 +126,14 @@ def as_logged(
         stamps.append(t)
         out.append((x, y, float(wrap_angle(2.0 * math.atan2(qz, qw)))))
     return np.asarray(stamps, dtype=float), np.asarray(out, dtype=float).reshape(-1, 3)
+
+
+def pose_at(stamps_s: np.ndarray, poses: np.ndarray, t_s: float) -> np.ndarray:
+    """The planar pose at ``t_s`` of a trajectory (stamps (N,), poses (N, 3)), linear between
+    samples (yaw unwrapped), held beyond its ends."""
+    yaw = np.unwrap(poses[:, 2])
+    return np.array([np.interp(t_s, stamps_s, poses[:, 0]), np.interp(t_s, stamps_s, poses[:, 1]),
+                     np.interp(t_s, stamps_s, yaw)])  # fmt: skip
 
 
 def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:

@@ -26,7 +26,7 @@ from estimation.posegraph.keys import pose_key
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
-from sensors.trajio import read_tum
+from sensors.trajio import pose_at, read_tum
 
 __all__ = ["Counts", "EventMaker", "EventStream", "build_events"]
 
@@ -98,8 +98,8 @@ class EventMaker:
         robot = entry["robot"]
         stamps, poses = self.odometry[robot]
         start_s, end_s = float(entry["start_s"]), float(entry["t_s"])
-        before = _pose_at(stamps, poses, start_s)
-        after = _pose_at(stamps, poses, end_s)
+        before = pose_at(stamps, poses, start_s)
+        after = pose_at(stamps, poses, end_s)
         dx, dy, dyaw = (float(v) for v in se2.between(before, after))
         step = Move(robot, int(entry["to_index"]), (dx, dy, dyaw),
                     _motion(stamps, poses, start_s, end_s, before, after))  # fmt: skip
@@ -168,17 +168,6 @@ def build_events(
         if progress is not None:
             progress(f"event {number + 1}/{len(dataset.events)}")
     return maker.result()
-
-
-def _pose_at(stamps: np.ndarray, poses: np.ndarray, t: float) -> np.ndarray:
-    yaw = np.unwrap(poses[:, 2])
-    return np.array(
-        [
-            np.interp(t, stamps, poses[:, 0]),
-            np.interp(t, stamps, poses[:, 1]),
-            np.interp(t, stamps, yaw),
-        ]
-    )
 
 
 def _choose(

@@ -34,7 +34,7 @@ from mapping.errors import MapError
 from mapping.formats.npz import load_map
 from mapping.formats.octomap_bt import encode_bt, tree_stream
 from sensors.geometry import se2
-from sensors.trajio import read_tum
+from sensors.trajio import pose_at, read_tum
 from sensors.yamlio import read_text_file
 
 __all__ = ["ExportSummary", "Trajectory", "export_result", "read_trajectories"]
@@ -125,17 +125,6 @@ def _odometry(
     return None
 
 
-def _pose_at(stamps: np.ndarray, poses: np.ndarray, t_s: float) -> np.ndarray:
-    yaw = np.unwrap(poses[:, 2])
-    return np.array(
-        [
-            np.interp(t_s, stamps, poses[:, 0]),
-            np.interp(t_s, stamps, poses[:, 1]),
-            np.interp(t_s, stamps, yaw),
-        ]
-    )
-
-
 def _frames(robot: str) -> tuple[str, str]:
     return f"{robot}/odom", f"{robot}/base_link"
 
@@ -177,7 +166,7 @@ def _robot_messages(
         if odometry is None:
             out += [tf(ns, "map", odom, np.zeros(3)), tf(ns, odom, base, pose)]
         else:
-            odom_pose = _pose_at(*odometry, float(t_s))
+            odom_pose = pose_at(*odometry, float(t_s))
             out.append(tf(ns, "map", odom, se2.compose(pose, se2.inverse(odom_pose))))
         stamped.append(ros.pose_stamped(ns, "map", pose))
         path = ros.path(ns, "map", list(stamped))

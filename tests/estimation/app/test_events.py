@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _motion, _pose_at
+from estimation.app.events import EventMaker, _motion
 from estimation.posegraph.events import Move, Start
 from estimation.posegraph.graph import odometry_covariance
 from estimation.posegraph.keys import pose_key
 from sensors.geometry import se2
+from sensors.trajio import pose_at
 
 SPEED_M_S, TURN_RAD_S, RATE_HZ = 0.4, math.radians(45.0), 10.0
 
@@ -42,7 +43,7 @@ def drive(start: tuple[float, float, float], legs: list[tuple[str, float]],
 
 def motion_of(stamps: np.ndarray, poses: np.ndarray, start_s: float,
               end_s: float) -> tuple[float, float]:  # fmt: skip
-    before, after = _pose_at(stamps, poses, start_s), _pose_at(stamps, poses, end_s)
+    before, after = pose_at(stamps, poses, start_s), pose_at(stamps, poses, end_s)
     return _motion(stamps, poses, start_s, end_s, before, after)
 
 
