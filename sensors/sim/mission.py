@@ -47,6 +47,7 @@ from sensors.trajio import write_tum
 from sensors.yamlio import read_yaml_mapping, validate_mapping
 
 __all__ = [
+    "CHUNK_SCANS",
     "ChangesSpec",
     "MissionError",
     "MissionSpec",
@@ -325,6 +326,8 @@ class TimelineBuilder:
         )  # fmt: skip
 
 
+#: Scans simulated per ray-casting call (bounds the memory of one call).
+CHUNK_SCANS = 1500
 #: How far a robot's own obstacle avoidance may take it from a leg of its planned path (m).
 LOCAL_DEVIATION_M = 0.3
 
@@ -457,7 +460,7 @@ def write_dataset(
     rng: np.random.Generator,
     baud_rate: int = 38400,
     odometry_rate_hz: float = 10.0,
-    chunk_scans: int = 1500,
+    chunk_scans: int = CHUNK_SCANS,
     progress: Callable[[str, float], None] | None = None,
 ) -> dict[str, Any]:
     """Record every robot's sensors over the timeline into ``out_dir`` (docs/design.md §12).

@@ -23,7 +23,14 @@ from estimation.app.config import Config
 from estimation.app.rig import dwell_seconds, odometry_noise, robot_body, simulated_scanner
 from sensors.atomic import write_text_atomic
 from sensors.geometry import se2
-from sensors.sim.mission import ChangesSpec, MissionError, Odometer, SensorRecorder, TimelineBuilder
+from sensors.sim.mission import (
+    CHUNK_SCANS,
+    ChangesSpec,
+    MissionError,
+    Odometer,
+    SensorRecorder,
+    TimelineBuilder,
+)
 from sensors.sim.planner import FreeSpace
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import World, perturb_movables, world_to_yaml
@@ -201,9 +208,9 @@ class SimulatedFleet(Fleet):
         for name, recorder in self.recorders.items():
             due = recorder.due(now)
             chunks: list[tuple[float, bytes]] = []
-            for start in range(0, len(due), 1500):
-                chunks += recorder.record(self.timeline, self._scenes, due[start : start + 1500],
-                                          self.scan_rng)  # fmt: skip
+            for start in range(0, len(due), CHUNK_SCANS):
+                piece = due[start : start + CHUNK_SCANS]
+                chunks += recorder.record(self.timeline, self._scenes, piece, self.scan_rng)
             got.lms[name] = chunks
             times = self._odometry_times(now)[self._odometry_sent[name] :]
             self._odometry_sent[name] += len(times)

@@ -8,7 +8,7 @@ and the mission's event entries become estimator events through the same ``Event
 global grid at their estimated poses (re-fused when the estimate of a fused pose moved); the
 next goals are chosen on that grid (:mod:`estimation.app.mission.explore`). When a station's
 local map is complete, its global localization runs in a worker process while the next local map
-is made, and enters the graph when it is ready.
+is made, and enters the graph when that local map is complete.
 
 Whatever the loop receives is also written, as it comes, into a dataset of the usual shape; at
 the end the result is written from that dataset by the same finish as ``coopmap isam`` (the
@@ -172,7 +172,9 @@ class MissionLoop:
         self.index = dict.fromkeys(self.robots, 0)
         self.now_s = 0.0
         self._fed = 0
-        self.work_s: list[float] = []
+        self.work_s: list[float] = []  # per dwell: from its end to the next command
+        self._since: float | None = None
+        self._dwells = 0
         self.localizations: list[dict[str, Any]] = []
         self.retries: list[str] = []
         self.refused: list[str] = []
@@ -180,6 +182,7 @@ class MissionLoop:
         self.given_up: list[list[float]] = []
         self.changed: list[str] = []
         self.trace: list[dict[str, Any]] = []  # per station of an exploration
+        self._cached: tuple[tuple[Any, ...], MapView | None] | None = None
 
     # -- what the robots recorded -------------------------------------------------------------
 
@@ -207,7 +210,6 @@ class MissionLoop:
         for event in new:
             self.smoother.add(event)
         self.now_s = got.now_s
-        self._collect(wait=False)
         self.estimate = self.smoother.estimate()
         self.map.update(sweeps_before_changes(self.entries, self.maker.sweeps), self.estimate)
 
@@ -217,12 +219,20 @@ class MissionLoop:
     def dwell(self, **fields: Any) -> bool:
         """Every robot dwells for a sweep; the loop takes in what they recorded. True if the
         dwell's reference and mapper gave an accepted mutual observation."""
+        self._work_done()
         self.fleet.dwell(**fields)
-        started = time.perf_counter()
+        self._since = time.perf_counter()
         before = self._mutual_factors()
         self._sync()
-        self.work_s.append(time.perf_counter() - started)
+        self._dwells += 1
         return self._mutual_factors() > before
+
+    def _work_done(self) -> None:
+        """The loop's work after a dwell ends when it gives the robots their next command:
+        taking in the recordings, iSAM2, fusion and choosing the goal all count."""
+        if self._since is not None:
+            self.work_s.append(time.perf_counter() - self._since)
+            self._since = None
 
     def pose(self, robot: str) -> np.ndarray:
         """Where the loop believes ``robot`` stands now: its estimate, or, before its first
@@ -249,6 +259,10 @@ class MissionLoop:
                               key, self.now_s)  # fmt: skip
 
     def _collect(self, wait: bool) -> None:
+        """Take the finished station's searches into the graph. The loop does so when the next
+        local map is complete (as the paper merges), not whenever the worker happens to finish,
+        so that a simulated mission flies the same way every time."""
+        was_ready = self.localizer.ready
         done = self.localizer.collect(self.now_s, wait=wait)
         if done is None:
             return
@@ -262,7 +276,7 @@ class MissionLoop:
             "factors": len(done.events), "searches": len(done.records),
             "submitted_mission_s": round(submitted_s, 3),
             "collected_mission_s": round(collected_s, 3),
-            "waited": wait, "records": records_json(done.records),
+            "waited": not was_ready, "records": records_json(done.records),
         })  # fmt: skip
 
     # -- goals ---------------------------------------------------------------------------------
@@ -270,6 +284,7 @@ class MissionLoop:
     def go(self, robot: str, pose: np.ndarray, path: list[np.ndarray] | None) -> bool:
         """Send one goal; ``path`` None: an absolute goal of an explicit plan."""
         believed = None if path is None else tuple(float(v) for v in self.pose(robot))
+        self._work_done()
         status = self.fleet.move(Goal(
             robot, (float(pose[0]), float(pose[1]), float(pose[2])),
             tuple((float(p[0]), float(p[1])) for p in path or []),
@@ -294,6 +309,7 @@ class MissionLoop:
             if self.mission.changes is not None:
                 self.changed = self.fleet.change_world(self.mission.changes)
                 self.dwell(phase="relocalize", step=len(self.steps))
+            self._work_done()
         finally:
             self.localizer.close()
         return reason
@@ -453,13 +469,20 @@ class MissionLoop:
         return True
 
     def _view(self) -> MapView | None:
+        """The planner's view of the map now; built again only when a dwell, an event or a
+        move changed what it is made of (a station asks for it several times)."""
+        state = (self._dwells, self.smoother.events, tuple(self.index.values()))
+        if self._cached is not None and self._cached[0] == state:
+            return self._cached[1]
         stood = [self.estimate[pose_key(r, i)][:2] for r in self.robots
                  for i in range(self.index[r] + 1) if pose_key(r, i) in self.estimate]  # fmt: skip
         stood += [self.pose(r)[:2] for r in self.robots]
         try:
-            return MapView(self.map.grid, self.config, np.array(stood))
+            view: MapView | None = MapView(self.map.grid, self.config, np.array(stood))
         except MapError:
-            return None
+            view = None
+        self._cached = (state, view)
+        return view
 
     # -- the record ----------------------------------------------------------------------------
 
@@ -496,7 +519,7 @@ class MissionLoop:
             "stop_reason": stop_reason,
             "duration_s": self.now_s,
             "changed": self.changed,
-            "dwells": len(self.work_s),
+            "dwells": self._dwells,
             "work_per_dwell_s": {"median": float(np.median(work)),
                                  "p99": float(np.percentile(work, 99)), "max": float(work.max())},
             "map_refusions": self.map.refusions,
