@@ -3,7 +3,7 @@
 When a station's local map is complete, its searches — against the station before it, the two
 and three before it, and the older stations near it (``estimation.search.stations``) — run in a
 worker process while the robots build the next local map; the ``Localize`` events they find
-enter the loop's graph when that local map is done. The worker is spawned (not forked: the loop's
+enter the loop's graph at the next dwell. The worker is spawned (not forked: the loop's
 process holds GTSAM and numba thread pools) and sees only explicit values: the stations with
 their sweeps, the estimate and the factors at submission.
 """

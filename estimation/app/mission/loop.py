@@ -8,7 +8,7 @@ and the mission's event entries become estimator events through the same ``Event
 global grid at their estimated poses (re-fused when the estimate of a fused pose moved); the
 next goals are chosen on that grid (:mod:`estimation.app.mission.explore`). When a station's
 local map is complete, its global localization runs in a worker process while the next local map
-is made, and enters the graph when that local map is complete.
+is made, and enters the graph at the first dwell after (in time for the next plans).
 
 Whatever the loop receives is also written, as it comes, into a dataset of the usual shape; at
 the end the result is written from that dataset by the same finish as ``coopmap isam`` (the
@@ -210,6 +210,8 @@ class MissionLoop:
         for event in new:
             self.smoother.add(event)
         self.now_s = got.now_s
+        if self.localizer.busy:
+            self._collect(wait=True)
         self.estimate = self.smoother.estimate()
         self.map.update(sweeps_before_changes(self.entries, self.maker.sweeps), self.estimate)
 
@@ -259,9 +261,11 @@ class MissionLoop:
                               key, self.now_s)  # fmt: skip
 
     def _collect(self, wait: bool) -> None:
-        """Take the finished station's searches into the graph. The loop does so when the next
-        local map is complete (as the paper merges), not whenever the worker happens to finish,
-        so that a simulated mission flies the same way every time."""
+        """Take the finished station's searches into the graph. The loop does so at the first
+        dwell after they were submitted (waiting there if they are late), not whenever the
+        worker happens to finish, so that a simulated mission flies the same way every time;
+        later (at the next station) the plans would rest on an uncorrected turn for a whole
+        local map."""
         was_ready = self.localizer.ready
         done = self.localizer.collect(self.now_s, wait=wait)
         if done is None:
