@@ -1,4 +1,6 @@
-"""Figures (matplotlib, headless): worlds, simulated views.
+"""Figures (matplotlib, headless): worlds, simulated views, and a result's figures — the ceiling
+band with the trajectories, the occupied cells (paper Fig. 5a), one measured sweep (Fig. 4b) and
+the position PDFs of the searches (Fig. 5b).
 
 Figures are drawn on ``matplotlib.figure.Figure`` objects with the Agg canvas — no pyplot state,
 no display needed — and written atomically.
@@ -6,6 +8,7 @@ no display needed — and written atomically.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,7 +23,16 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["render_map_cubes", "render_range_panorama", "render_trajectories", "render_world"]
+__all__ = [
+    "draw_band",
+    "draw_scan_at",
+    "render_map_cubes",
+    "render_range_panorama",
+    "render_search_pdf",
+    "render_sweep",
+    "render_trajectories",
+    "render_world",
+]
 
 _DOOR_COLOR = "#e07b00"
 _WINDOW_COLOR = "#2aa6d6"
@@ -224,24 +236,53 @@ def render_range_panorama(
 _ROBOT_COLORS = ("#d62728", "#1f77b4", "#2ca02c", "#9467bd", "#ff7f0e")
 
 
+def draw_band(ax: Axes, band: Any) -> Any:
+    """A band (``mapping.band.Band``) on ``ax`` in metres: occupied dark, observed free white,
+    unknown in ``mapping.figures.UNKNOWN_COLOR``; returns the image (for a colour bar)."""
+    from mapping.figures import band_shading
+
+    shade, colors = band_shading(band)
+    return ax.imshow(shade, origin="lower", extent=band.extent(), cmap=colors, vmin=0.0,
+                     vmax=1.0, interpolation="nearest")  # fmt: skip
+
+
+def draw_scan_at(ax: Axes, scan: Any, pose: np.ndarray, **style: Any) -> None:
+    """The occupied cells of a band ``scan`` (in its own frame) drawn at ``pose`` (x, y, yaw)."""
+    gx, gy = scan.cell_centers()
+    occupied = scan.known & (scan.occupancy >= 0.5)
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    px = c * gx[occupied] - s * gy[occupied] + float(pose[0])
+    py = s * gx[occupied] + c * gy[occupied] + float(pose[1])
+    ax.scatter(px, py, s=2, linewidths=0, **({"c": "tab:red"} | style))
+
+
+def _band_colorbar(figure: Figure, ax: Axes, image: Any) -> None:
+    bar = figure.colorbar(image, ax=ax, shrink=0.8, pad=0.01)
+    bar.set_ticks([0.0, 0.5, 1.0], labels=["occupied", "half", "free"])
+    bar.set_label("band: share of layers free (blue-grey: unknown)")
+
+
 def render_trajectories(
     band: Any,
     poses: dict[str, dict[int, np.ndarray]],
     path: Path | str,
     *,
     truth: dict[str, dict[int, np.ndarray]] | None = None,
+    world: World | None = None,
     title: str = "ceiling band and stations",
 ) -> Path:
-    """A 2D band (``mapping.band.Band``) with each robot's poses: estimate, and truth if given."""
+    """A 2D band (``mapping.band.Band``: unknown drawn apart from free) with each robot's poses:
+    the estimate, and the truth and the true world's walls if given."""
     path = Path(path)
     x0, x1, y0, y1 = band.extent()
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)
     figure = _new_figure(8.0, max(3.0, 8.0 * aspect) + 0.6)
     ax = figure.subplots()
-    shown = np.where(band.known, band.occupancy, np.nan)
-    image = ax.imshow(shown, origin="lower", extent=(x0, x1, y0, y1), cmap="Greys", vmin=0,
-                      vmax=1, interpolation="nearest")  # fmt: skip
-    figure.colorbar(image, ax=ax, label="occupied share of the band", shrink=0.8)
+    _band_colorbar(figure, ax, draw_band(ax, band))
+    if world is not None:
+        _draw_walls(ax, world)
+        ax.set_xlim(x0, x1)
+        ax.set_ylim(y0, y1)
     for n, (robot, robot_poses) in enumerate(sorted(poses.items())):
         color = _ROBOT_COLORS[n % len(_ROBOT_COLORS)]
         order = sorted(robot_poses)
@@ -257,6 +298,97 @@ def render_trajectories(
     ax.set_ylabel("y (m)")
     ax.set_title(title)
     ax.legend(loc="upper right", fontsize=7)
+    _save(figure, path)
+    return path
+
+
+def render_sweep(
+    points_scanner: np.ndarray,
+    path: Path | str,
+    *,
+    beacons: np.ndarray | None = None,
+    title: str = "one measured sweep",
+    max_points: int = 40_000,
+) -> Path:
+    """One 3D scan as measured (paper Fig. 4b): its returns in the scanner frame seen from above
+    at an angle, coloured by their distance from the scanner; beacon detections ringed."""
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the 3d projection
+
+    path = Path(path)
+    points = np.asarray(points_scanner, dtype=np.float64).reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1)]
+    total = len(points)
+    if total > max_points:  # every k-th return: the sweep's structure, not a random subset
+        points = points[:: math.ceil(total / max_points)]
+    distance = np.linalg.norm(points, axis=1)
+    figure = _new_figure(9.0, 6.5)
+    ax = figure.add_subplot(projection="3d")
+    if len(points):
+        scatter = ax.scatter(points[:, 0], points[:, 1], points[:, 2], c=distance, cmap="turbo",
+                             s=0.6, linewidths=0, depthshade=False)  # fmt: skip
+        figure.colorbar(scatter, ax=ax, shrink=0.6, pad=0.08, label="distance from scanner (m)")
+        span = np.ptp(points, axis=0)
+        ax.set_box_aspect((max(span[0], 1e-3), max(span[1], 1e-3), max(span[2], 1e-3)))
+    if beacons is not None and len(beacons):
+        b = np.asarray(beacons, dtype=np.float64).reshape(-1, 3)
+        ax.scatter(b[:, 0], b[:, 1], b[:, 2], s=90, facecolors="none", edgecolors="magenta",
+                   linewidths=1.5, label="beacon detection")  # fmt: skip
+        ax.legend(loc="upper left", fontsize=7)
+    ax.view_init(elev=50, azim=-70)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    shown = f"{len(points):,} of {total:,} returns" if total > len(points) else f"{total:,} returns"
+    ax.set_title(f"{title}: {shown}")
+    _save(figure, path)
+    return path
+
+
+def render_search_pdf(picture: Any, pose: np.ndarray, path: Path | str, *, title: str) -> Path:
+    """A search's position PDF (paper Fig. 5b): P(x, y) summed over the rotations as a surface
+    over the window searched, beside the map searched with the local band's occupied cells at the
+    best pose and the window outlined. ``picture`` is an
+    ``estimation.search.stations.SearchPicture``; ``pose`` the best pose in its map's frame."""
+    from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the 3d projection
+
+    path = Path(path)
+    marginal = np.asarray(picture.marginal, dtype=np.float64)
+    peak = float(marginal.max()) if marginal.size else 0.0
+    relative = marginal / peak if peak > 0 else marginal
+    # At most 150 × 150 facets: the surface's shape, drawn in well under a second.
+    step_y = max(1, math.ceil(relative.shape[0] / 150))
+    step_x = max(1, math.ceil(relative.shape[1] / 150))
+    xs, ys = picture.x_m[::step_x], picture.y_m[::step_y]
+    surface = relative[::step_y, ::step_x]
+    figure = _new_figure(13.0, 5.6)
+    ax_pdf = figure.add_subplot(1, 2, 1, projection="3d")
+    if surface.size:
+        gx, gy = np.meshgrid(xs, ys)
+        ax_pdf.plot_surface(gx, gy, surface, cmap="viridis", linewidth=0, antialiased=False,
+                            rstride=1, cstride=1)  # fmt: skip
+    ax_pdf.set_xlabel("x (m)")
+    ax_pdf.set_ylabel("y (m)")
+    ax_pdf.set_zlabel("P(x, y) / max")
+    ax_pdf.view_init(elev=35, azim=-60)
+    ax_pdf.set_title(f"position PDF over {len(picture.x_m)} × {len(picture.y_m)} positions")
+    ax_map = figure.add_subplot(1, 2, 2)
+    _band_colorbar(figure, ax_map, draw_band(ax_map, picture.against))
+    draw_scan_at(ax_map, picture.local, pose, label="local band: occupied cells")
+    if len(picture.x_m) and len(picture.y_m):
+        wx = (float(picture.x_m[0]), float(picture.x_m[-1]))
+        wy = (float(picture.y_m[0]), float(picture.y_m[-1]))
+        ax_map.plot([wx[0], wx[1], wx[1], wx[0], wx[0]], [wy[0], wy[0], wy[1], wy[1], wy[0]],
+                    "--", color="tab:orange", lw=1, label="window searched")  # fmt: skip
+    x, y, yaw = (float(v) for v in pose)
+    ax_map.plot([x], [y], marker="o", ms=9, mfc="none", mec="tab:cyan", mew=2)
+    ax_map.annotate("", xy=(x + 0.8 * math.cos(yaw), y + 0.8 * math.sin(yaw)), xytext=(x, y),
+                    arrowprops={"arrowstyle": "->", "color": "tab:cyan", "lw": 2})  # fmt: skip
+    ax_map.set_aspect("equal")
+    ax_map.set_xlabel("x (m)")
+    ax_map.set_ylabel("y (m)")
+    ax_map.legend(loc="upper right", fontsize=7, markerscale=4)
+    ax_map.set_title(f"best pose x={x:.2f} m, y={y:.2f} m, yaw={math.degrees(yaw):.1f}°")
+    figure.suptitle(title)
     _save(figure, path)
     return path
 

@@ -120,6 +120,8 @@ def render_pdf(localization: Localization, path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from estimation.app.figures import draw_band, draw_scan_at
+
     result = localization.result
     band, scan = localization.map_band, localization.scan_band
     x, y, yaw = (float(v) for v in result.pose)
@@ -133,16 +135,10 @@ def render_pdf(localization: Localization, path: Path) -> Path:
         grid = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.8])
     ax_map, ax_pdf, ax_zoom = (fig.add_subplot(grid[i]) for i in range(3))
 
-    shown = np.where(band.known, band.occupancy, np.nan)
-    cmap = matplotlib.colormaps["Greys"].with_extremes(bad="#d8e4f0")
-    ax_map.imshow(shown, origin="lower", extent=band.extent(), cmap=cmap, vmin=0, vmax=1)
-    gx, gy = scan.cell_centers()
-    occupied = scan.known & (scan.occupancy >= 0.5)
+    draw_band(ax_map, band)
+    draw_scan_at(ax_map, scan, result.pose, label="scan: occupied cells")
     c, s = math.cos(yaw), math.sin(yaw)
-    px = c * gx[occupied] - s * gy[occupied] + x
-    py = s * gx[occupied] + c * gy[occupied] + y
-    ax_map.scatter(px, py, s=2, c="tab:red", linewidths=0, label="scan: occupied cells")
-    ax_map.set_title("map (grey; blue: unknown), scan placed at the best pose")
+    ax_map.set_title("map (white: free; blue-grey: unknown), scan placed at the best pose")
     ax_map.legend(loc="upper right", markerscale=4)
 
     marginal = result.prob.sum(axis=0, dtype=np.float64)

@@ -201,8 +201,10 @@ def _finish(
     timings: Timings,
     out: Path,
     extra: dict[str, Any],
+    searches: list[SearchRecord],
 ) -> BatchOutput:
-    """Re-fuse every sweep at its optimized pose, then write the result directory."""
+    """Re-fuse every sweep at its optimized pose, then write the result directory (``searches``:
+    the mission's search records, for the figures of their PDFs)."""
     dataset = prepared.dataset
     config = dataset.config
     clock = time.perf_counter()
@@ -267,7 +269,7 @@ def _finish(
         **extra,
     }
     output = BatchOutput(
-        out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances
+        out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances, searches
     )
     write_results(output, config)
     return output
@@ -412,7 +414,7 @@ def run_batch(
         },
     }
     solution = Solution(builder, factors, result.estimate, result.inliers, dropped)
-    return _finish(prepared, solution, timings, out, extra)
+    return _finish(prepared, solution, timings, out, extra, searched.records + relocalized)
 
 
 def run_isam(
@@ -515,4 +517,5 @@ def finish_isam(
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
                    "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0},
          **(report or {})},
+        searched.records + relocalized,
     )  # fmt: skip

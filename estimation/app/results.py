@@ -34,6 +34,7 @@ from sensors.trajio import G2oGraph, write_g2o, write_tum
 if TYPE_CHECKING:
     from estimation.app.dataset import Sweep
     from estimation.posegraph.graph import FactorSpec
+    from estimation.search.stations import SearchRecord
     from mapping.grid import OccupancyGrid
 
 __all__ = [
@@ -51,7 +52,8 @@ __all__ = [
 class BatchOutput:
     """A run's result: poses per robot and pose index, their stamps, the sweeps, the factors
     solved and their inlier flags, the fused grid, the report (``report.json``) and the poses'
-    marginal covariances (3×3, gtsam's tangent space) per robot and pose index."""
+    marginal covariances (3×3, gtsam's tangent space) per robot and pose index, and the search
+    records (links, loop closures, relocalizations) with the pictures of their PDFs."""
 
     out_dir: Path
     poses: dict[str, dict[int, np.ndarray]]
@@ -62,6 +64,7 @@ class BatchOutput:
     grid: OccupancyGrid
     report: dict[str, Any] = field(default_factory=dict)
     covariances: dict[str, dict[int, np.ndarray]] = field(default_factory=dict)
+    searches: list[SearchRecord] = field(default_factory=list)
 
 
 def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
@@ -129,18 +132,71 @@ def write_results(output: BatchOutput, config: Config) -> None:
             output.report["ceiling"] = f"not written: {exc}"
         output.report["occupied_voxels"] = occupied
         output.report["g2o_vertices"] = {key_label(k): n for k, n in ids.items()}
-        figures = work / "figures"
-        from estimation.app.figures import render_map_cubes, render_trajectories
-
-        if ceiling is not None:
-            render_trajectories(ceiling, output.poses, figures / "ceiling_trajectories.png")
-        render_map_cubes(output.grid, figures / "map_cubes.png")
+        output.report["figures"] = write_figures(output, ceiling, work / "figures")
         header = f"# effective configuration; coopmap {__version__}\n"
         write_text_atomic(work / "config.yaml", header + config_to_yaml(config))
         write_text_atomic(work / "report.md", report_markdown(output))
         write_text_atomic(
             work / "report.json", json.dumps(output.report, indent=1, default=float) + "\n"
         )
+
+
+#: At most this many search PDFs are drawn per result (relocalizations first, then the loop
+#: closures that became factors, then the others, each in mission order).
+MAX_PDF_FIGURES = 12
+
+
+def _pdf_figures(searches: list[SearchRecord]) -> list[tuple[str, SearchRecord]]:
+    """The search records whose PDF a result draws, with their file names."""
+    drawn = [r for r in searches if r.picture is not None]
+    order = {"relocalize": 0, "loop": 1}
+    drawn.sort(key=lambda r: (order.get(r.kind, 2), not r.used, r.time_s))
+    names = []
+    for record in drawn[:MAX_PDF_FIGURES]:
+        kind = "relocalization" if record.kind == "relocalize" else record.kind
+        names.append((f"pdf_{kind}_{record.station}_{record.against}_{record.band}.png", record))
+    return names
+
+
+def _used(record: SearchRecord) -> str:
+    if record.kind == "relocalize":
+        return " (reported, not a factor)"
+    return ", a factor" if record.used else ", not used"
+
+
+def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str, Any]:
+    """A result's figures: the ceiling band with the trajectories, the occupied cells (paper
+    Fig. 5a), the first sweep as measured (Fig. 4b) and the search PDFs (Fig. 5b); returns what
+    was drawn for ``report.json``."""
+    from estimation.app.figures import (
+        render_map_cubes,
+        render_search_pdf,
+        render_sweep,
+        render_trajectories,
+    )
+
+    drawn: dict[str, Any] = {}
+    if ceiling is not None:
+        render_trajectories(ceiling, output.poses, figures / "ceiling_trajectories.png")
+        drawn["ceiling"] = "ceiling_trajectories.png"
+    render_map_cubes(output.grid, figures / "map_cubes.png")
+    drawn["map"] = "map_cubes.png"
+    if output.sweeps:
+        sweep = output.sweeps[0]
+        beacons = np.array([d.center_scanner for d in sweep.detections]).reshape(-1, 3)
+        title = f"sweep of {sweep.robot}{sweep.index} (dwell {sweep.dwell})"
+        render_sweep(sweep.scan.points_scanner, figures / "sweep.png", beacons=beacons, title=title)
+        drawn["sweep"] = {"file": "sweep.png", "pose": f"{sweep.robot}{sweep.index}"}
+    pdfs = []
+    for name, record in _pdf_figures(output.searches):
+        kind = {"relocalize": "relocalization", "loop": "loop closure"}.get(record.kind, "link")
+        title = (f"{kind}: {record.station} against {record.against} ({record.band} band), "
+                 f"peak ratio {record.peak_ratio:.3g}" + _used(record))  # fmt: skip
+        render_search_pdf(record.picture, np.array(record.pose), figures / name, title=title)
+        pdfs.append(name)
+    drawn["pdfs"] = pdfs
+    drawn["pdfs_not_drawn"] = sum(r.picture is not None for r in output.searches) - len(pdfs)
+    return drawn
 
 
 #: ``covariances.json``: its format name and version.
@@ -200,4 +256,9 @@ def report_markdown(output: BatchOutput, metrics: dict[str, Any] | None = None) 
         "![occupied cells](figures/map_cubes.png)",
         "",
     ]
+    figures = r.get("figures", {})
+    if "sweep" in figures:
+        lines += [f"![one measured sweep](figures/{figures['sweep']['file']})", ""]
+    for name in figures.get("pdfs", []):
+        lines += [f"![search PDF](figures/{name})", ""]
     return "\n".join(lines)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -61,6 +61,7 @@ from sensors.geometry.frames import pose2_matrix
 __all__ = [
     "SEARCH_STAGES",
     "Dwell",
+    "SearchPicture",
     "SearchRecord",
     "Station",
     "StationParams",
@@ -158,9 +159,28 @@ class StationParams:
     max_window_m: float
 
 
+@dataclass(frozen=True, eq=False)
+class SearchPicture:
+    """What a figure of one search draws (the paper's Fig. 5b): the position PDF summed over the
+    rotations, on the lattice searched, and the two bands matched, in the frame of the band
+    searched against."""
+
+    x_m: np.ndarray  # (X,)
+    y_m: np.ndarray  # (Y,)
+    marginal: np.ndarray  # (Y, X) float32, sums to 1
+    against: Band  # the map searched
+    local: Band  # the station's (or the sweep's) band, in its own frame
+
+    @classmethod
+    def of(cls, result: SearchResult, local: Band, against: Band) -> SearchPicture:
+        marginal = result.prob.sum(axis=0, dtype=np.float64).astype(np.float32)
+        return cls(result.x_m, result.y_m, marginal, against, local)
+
+
 @dataclass(frozen=True)
 class SearchRecord:
-    """One search: what was matched against what, and the answer."""
+    """One search: what was matched against what, and the answer; loop closures and
+    relocalizations keep their :class:`SearchPicture` for the result's figures."""
 
     station: str  # "a3"
     against: str  # the anchor station's label, or "map"
@@ -173,6 +193,7 @@ class SearchRecord:
     seconds: float
     time_s: float  # when the station's sweeps were taken
     overlap: float = math.nan  # share of the local map's known cells on known map cells
+    picture: SearchPicture | None = field(default=None, compare=False, repr=False)
 
 
 def _band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
@@ -372,7 +393,7 @@ def loop_closures(
                 station=station.label, against=anchor.label, band="ceiling", kind="loop",
                 pose=_pose_of(result), peak_ratio=float(result.peak_ratio), dominant=dominant,
                 used=use, seconds=time.perf_counter() - started, time_s=station.time_s,
-                overlap=overlap,
+                overlap=overlap, picture=SearchPicture.of(result, local, global_),
             )
         )  # fmt: skip
     return events, records
@@ -422,6 +443,7 @@ def relocalize(
                         peak_ratio=float(found.result.peak_ratio), dominant=found.dominant,
                         used=False, seconds=time.perf_counter() - started, time_s=dwell.time_s,
                         overlap=overlap_fraction(local, global_, found.result.pose),
+                        picture=SearchPicture.of(found.result, local, global_),
                     )
                 )  # fmt: skip
     return records
@@ -429,6 +451,10 @@ def relocalize(
 
 def records_json(records: list[SearchRecord]) -> list[dict[str, Any]]:
     return [
-        {**r.__dict__, "pose": [round(v, 6) for v in r.pose], "overlap": round(r.overlap, 4)}
+        {
+            **{k: v for k, v in r.__dict__.items() if k != "picture"},
+            "pose": [round(v, 6) for v in r.pose],
+            "overlap": round(r.overlap, 4),
+        }
         for r in records
     ]

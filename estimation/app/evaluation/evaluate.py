@@ -11,6 +11,8 @@
   through (``sensors.sim.truth``), at the map's resolution. Precision: the share of occupied
   cells within one cell of a true surface voxel; recall: the share of true surface voxels the
   map observed (known, occupied or free) that are within one cell of an occupied cell.
+* Figure: ``figures/ceiling_truth.png`` in the result, the ceiling band under the true walls
+  with the estimated and the true poses.
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from estimation.app.evaluation.metrics import ate, rpe
 from estimation.errors import EstimationError
+from mapping.band import extract_band
+from mapping.errors import MapError
 from mapping.formats.npz import load_map
 from sensors.atomic import output_kind, write_text_atomic
 from sensors.sim.scene import build_mesh
@@ -180,6 +184,8 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
     grid = load_map(result / "map.npz")  # a damaged map fails before the trajectories
     metrics: dict[str, Any] = {"robots": {}}
     all_est, all_true = [], []
+    estimated: dict[str, np.ndarray] = {}
+    truths: dict[str, np.ndarray] = {}
     for robot in sorted(report["robots"]):
         tum = result / "poses" / f"{robot}.tum"
         if not tum.exists():  # a FIFO or a folder in its place is refused by read_tum
@@ -196,6 +202,7 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         metrics["robots"][robot] = entry
         all_est.append(estimate)
         all_true.append(truth)
+        estimated[robot], truths[robot] = estimate, truth
     rows = _mutual_rows(dataset, report)
     accepted = np.array([r[:2] for r in rows if r[2]]).reshape(-1, 2)
     metrics["mutual"] = {
@@ -217,8 +224,39 @@ def evaluate(dataset_dir: Path | str, result_dir: Path | str | None = None) -> d
         "unseen_pairs": len(report["unseen_pairs"]),
         "dropped_poses": len(report["dropped_poses"]),
     }
+    metrics["figures"] = _truth_figure(dataset, data, grid, result, estimated, truths)
     write_text_atomic(result / "metrics.json", json.dumps(metrics, indent=1) + "\n")
     return metrics
+
+
+def _truth_figure(
+    dataset: Path,
+    data: Any,
+    grid: Any,
+    result: Path,
+    estimated: dict[str, np.ndarray],
+    truths: dict[str, np.ndarray],
+) -> dict[str, str]:
+    """``figures/ceiling_truth.png``: the result's ceiling band under the true world's walls,
+    with each robot's estimated and true poses."""
+    from estimation.app.figures import render_trajectories
+
+    band = data.config.bands.ceiling
+    try:
+        ceiling = extract_band(grid, band.min_m, band.max_m,
+                               free_min_observed=data.config.bands.free_min_observed)  # fmt: skip
+    except MapError as exc:
+        return {"ceiling_truth": f"not drawn: {exc}"}
+    world = load_world(dataset / "world.yaml")
+
+    def indexed(poses: dict[str, np.ndarray]) -> dict[str, dict[int, np.ndarray]]:
+        return {robot: dict(enumerate(p)) for robot, p in poses.items()}
+
+    render_trajectories(
+        ceiling, indexed(estimated), result / "figures" / "ceiling_truth.png",
+        truth=indexed(truths), world=world, title="ceiling band, true walls, estimate and truth",
+    )  # fmt: skip
+    return {"ceiling_truth": "ceiling_truth.png"}
 
 
 def _coverage(dataset: Path, data: Any, grid: Any) -> dict[str, Any]:

@@ -142,3 +142,28 @@ def test_covariances_are_the_marginals_of_every_pose(dataset: Path) -> None:
     later = np.array(document["robots"]["b"]["covariances"])
     assert (later[:, 0, 0] > 10 * gauge[0]).all()
     assert math.sqrt(later[:, 0, 0].max()) < 0.1
+
+
+def test_every_result_draws_a_sweep_and_the_relocalization_pdfs(dataset: Path) -> None:
+    report = json.loads((dataset / "result" / "report.json").read_text())
+    figures = report["figures"]
+    relocalizations = report["global_localization"]["relocalization"]
+    # essex_lab: two robots relocalized after the changes, in the ceiling and the floor band
+    assert len(relocalizations) == 4
+    expected = {f"pdf_relocalization_{r['station']}_map_{r['band']}.png" for r in relocalizations}
+    assert set(figures["pdfs"]) == expected
+    assert figures["pdfs_not_drawn"] == 0
+    assert figures["sweep"] == {"file": "sweep.png", "pose": "a0"}
+    folder = dataset / "result" / "figures"
+    for name in [*figures["pdfs"], "sweep.png", "ceiling_trajectories.png", "map_cubes.png"]:
+        assert (folder / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", name
+    markdown = (dataset / "result" / "report.md").read_text()
+    assert "figures/sweep.png" in markdown
+    assert all(n in markdown for n in figures["pdfs"])
+
+
+def test_evaluate_draws_the_ceiling_under_the_true_walls(dataset: Path) -> None:
+    metrics = evaluate(dataset)
+    assert metrics["figures"] == {"ceiling_truth": "ceiling_truth.png"}
+    path = dataset / "result" / "figures" / "ceiling_truth.png"
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
