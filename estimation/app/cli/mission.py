@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -16,6 +19,35 @@ from estimation.app.cli.common import (
 )
 from estimation.app.cli.ros import McapOption, print_export
 from estimation.app.config import ConfigError
+
+if TYPE_CHECKING:
+    from estimation.app.ros.live_view import LiveView
+    from estimation.app.sim.simulate import SimulationResult
+
+ViewOption = Annotated[
+    bool,
+    typer.Option(
+        "--view",
+        help='Serve the result live to Foxglove (WebSocket; docs/ros.md, "Live view in '
+        'Foxglove") and keep serving until Ctrl-C.',
+    ),
+]
+ViewPortOption = Annotated[
+    int,
+    typer.Option("--view-port", min=0, max=65535, help="Port of the live view (0: any free port)."),
+]
+ViewHostOption = Annotated[
+    str,
+    typer.Option(
+        "--view-host",
+        help="Interface the live view listens on; anyone who reaches it sees the map "
+        "(0.0.0.0: every interface).",
+    ),
+]
+ViewSecondsOption = Annotated[
+    float | None,
+    typer.Option("--view-seconds", min=0.0, help="Serve this long (s) after the work, then exit."),
+]
 
 
 @cli_errors
@@ -84,26 +116,48 @@ def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder to write.")],
     seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
     config: ConfigOption = None,
+    view: ViewOption = False,
+    view_port: ViewPortOption = 8765,
+    view_host: ViewHostOption = "127.0.0.1",
+    view_seconds: ViewSecondsOption = None,
 ) -> None:
     """Simulate a cooperative mission: world + robots + sensors → a recorded dataset."""
     from estimation.app.resources import resolve_builtin
     from estimation.app.sim.simulate import run_simulation
+    from sensors.sim.mission import load_mission
     from sensors.yamlio import read_yaml_mapping
 
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
     path = resolve_builtin("missions", mission)
-    err = make_console(stderr=True)
-    with err.status(f"simulating {path.stem}…", spinner="dots") as status:
+    if view:
+        spec = load_mission(path)
+        if spec.plan != "auto" or spec.auto.planner != "map":
+            raise ConfigError(
+                f"{path}: --view shows the mission loop's estimate, and this mission is not "
+                "flown by it (plan: auto with auto.planner: map); run coopmap batch --view on "
+                "the dataset instead"
+            )
+    with live_view(view, view_host, view_port) as live:
+        err = make_console(stderr=True)
+        with err.status(f"simulating {path.stem}…", spinner="dots") as status:
 
-        def progress(robot: str, fraction: float) -> None:
-            status.update(f"simulating {path.stem}: sensors of robot {robot} ({fraction:.0%})")
+            def progress(robot: str, fraction: float) -> None:
+                status.update(f"simulating {path.stem}: sensors of robot {robot} ({fraction:.0%})")
 
-        def update(text: str) -> None:
-            status.update(f"{path.stem}: {text}")
+            def update(text: str) -> None:
+                status.update(f"{path.stem}: {text}")
 
-        result = run_simulation(
-            path, out, overrides=overrides, seed=seed, progress=progress, status=update
-        )
+            result = run_simulation(
+                path, out, overrides=overrides, seed=seed, progress=progress, status=update,
+                observe=None if live is None else live.publish_loop,
+            )  # fmt: skip
+        print_simulation(result)
+        if result.loop is not None:
+            serve_result(live, result.out_dir / "result", result.out_dir, view_seconds)
+
+
+def print_simulation(result: SimulationResult) -> None:
+    """What ``simulate`` flew and where it wrote it."""
     console = make_console()
     poses = ", ".join(f"{name} {count}" for name, count in result.poses.items())
     console.print(
@@ -133,6 +187,10 @@ def batch(
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Result folder.")] = None,
     config: ConfigOption = None,
     mcap: McapOption = None,
+    view: ViewOption = False,
+    view_port: ViewPortOption = 8765,
+    view_host: ViewHostOption = "127.0.0.1",
+    view_seconds: ViewSecondsOption = None,
 ) -> None:
     """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
     from estimation.app.pipeline import run_batch
@@ -140,10 +198,18 @@ def batch(
 
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
     check_mcap(mcap)
-    err = make_console(stderr=True)
-    with err.status(f"processing {dataset}…", spinner="dots") as status:
-        output = run_batch(dataset, out, overrides=overrides, progress=status.update)
-    r = output.report
+    with live_view(view, view_host, view_port) as live:
+        err = make_console(stderr=True)
+        with err.status(f"processing {dataset}…", spinner="dots") as status:
+            output = run_batch(dataset, out, overrides=overrides, progress=status.update)
+        print_batch(output.report, output.out_dir)
+        export_mcap(output.out_dir, mcap, dataset)
+        serve_result(live, output.out_dir, dataset, view_seconds)
+    fail_unplaced(output.report, output.out_dir)
+
+
+def print_batch(r: dict[str, Any], out_dir: Path) -> None:
+    """What ``batch`` found and where it wrote it."""
     poses = ", ".join(f"{name} {s['poses']}" for name, s in r["robots"].items())
     implausible = ", ".join(f"{name} {s['implausible_scans']}" for name, s in r["robots"].items())
     make_console().print(
@@ -161,9 +227,7 @@ def batch(
                 f"{s['station']} ({s['search_factors']} search factors)" for s in unobserved
             )
         )
-    make_console().print(f"  wrote {output.out_dir}/")
-    export_mcap(output.out_dir, mcap, dataset)
-    fail_unplaced(r, output.out_dir)
+    make_console().print(f"  wrote {out_dir}/")
 
 
 def check_mcap(mcap: Path | None) -> None:
@@ -172,6 +236,42 @@ def check_mcap(mcap: Path | None) -> None:
         from estimation.app.ros.bag import check_mcap_replaceable
 
         check_mcap_replaceable(mcap)
+
+
+@contextlib.contextmanager
+def live_view(wanted: bool, host: str, port: int) -> Iterator[LiveView | None]:
+    """The ``--view`` server, listening before the work starts (a taken port fails at once);
+    None without ``--view``. Stopped when the command ends."""
+    if not wanted:
+        yield None
+        return
+    from estimation.app.ros.live_view import LiveView
+
+    with LiveView(host=host, port=port) as view:
+        make_console().print(
+            f"live view: {view.url} (Foxglove: Open connection → Foxglove WebSocket)"
+        )
+        yield view
+
+
+def serve_result(live: LiveView | None, result: Path, dataset: Path, seconds: float | None) -> None:
+    """Publish the finished result to the live view, then serve it for ``seconds`` or, when
+    None, until Ctrl-C."""
+    if live is None:
+        return
+    console = make_console()
+    for note in live.publish_result(result, dataset_dir=dataset):
+        console.print(f"  live view note: {note}")
+    if seconds is not None:
+        console.print(f"live view: serving the result at {live.url} for {seconds:g} s")
+        time.sleep(seconds)
+        return
+    console.print(f"live view: serving the result at {live.url}; press Ctrl-C to stop")
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        console.print("live view: stopped")
 
 
 def export_mcap(result: Path, mcap: Path | None, dataset: Path) -> None:
@@ -205,6 +305,10 @@ def isam(
     ] = False,
     config: ConfigOption = None,
     mcap: McapOption = None,
+    view: ViewOption = False,
+    view_port: ViewPortOption = 8765,
+    view_host: ViewHostOption = "127.0.0.1",
+    view_seconds: ViewSecondsOption = None,
 ) -> None:
     """Incremental iSAM2 over the same data, event by event, with checkpoints."""
     from estimation.app.pipeline import run_isam
@@ -212,19 +316,24 @@ def isam(
 
     overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
     check_mcap(mcap)
-    err = make_console(stderr=True)
-    with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
-        output = run_isam(dataset, out, overrides=overrides, resume=resume, progress=status.update)
-    assert output is not None
-    r = output.report
-    make_console().print(
-        f"coopmap isam: {r['isam2']['events']} events"
-        + (" (resumed)" if resume else "")
-        + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
-        f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied voxels"
-    )
-    make_console().print(f"  wrote {output.out_dir}/")
-    export_mcap(output.out_dir, mcap, dataset)
+    with live_view(view, view_host, view_port) as live:
+        err = make_console(stderr=True)
+        with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
+            output = run_isam(
+                dataset, out, overrides=overrides, resume=resume, progress=status.update
+            )
+        assert output is not None
+        r = output.report
+        make_console().print(
+            f"coopmap isam: {r['isam2']['events']} events"
+            + (" (resumed)" if resume else "")
+            + f", iSAM2 update median {r['isam2']['update_median_ms']:.2f} ms, max "
+            f"{r['isam2']['update_max_ms']:.2f} ms; {r.get('occupied_voxels', 0):,} occupied "
+            "voxels"
+        )
+        make_console().print(f"  wrote {output.out_dir}/")
+        export_mcap(output.out_dir, mcap, dataset)
+        serve_result(live, output.out_dir, dataset, view_seconds)
     fail_unplaced(output.report, output.out_dir)
 
 

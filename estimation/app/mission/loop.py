@@ -143,6 +143,9 @@ class MissionLoop:
     work: Path
     concurrent: bool = True
     progress: Progress | None = None
+    #: Called with the loop after every dwell, once it took in what the robots recorded (a
+    #: live view publishes the estimate); its time does not count as the loop's work.
+    observe: Callable[[MissionLoop], None] | None = None
     entries: list[dict[str, Any]] = field(default_factory=list)
     steps: list[StepSpec] = field(default_factory=list)
 
@@ -227,6 +230,10 @@ class MissionLoop:
         before = self._mutual_factors()
         self._sync()
         self._dwells += 1
+        if self.observe is not None:
+            began = time.perf_counter()
+            self.observe(self)
+            self._since += time.perf_counter() - began
         return self._mutual_factors() > before
 
     def _work_done(self) -> None:

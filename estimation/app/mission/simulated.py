@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -34,9 +35,11 @@ def fly(
     final: Path | None = None,
     concurrent: bool = True,
     status: Callable[[str], None] | None = None,
+    observe: Callable[[Any], None] | None = None,
 ) -> LoopResult:
     """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``
-    (which becomes ``final`` when the caller replaces it there)."""
+    (which becomes ``final`` when the caller replaces it there). ``observe`` is the loop's
+    hook after every dwell (:attr:`MissionLoop.observe`)."""
     starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
               for r in mission.robots}  # fmt: skip
     # The body collides when it touches: the planning margin is the loop's, on its own map.
@@ -47,7 +50,9 @@ def fly(
             raise MissionError(f"robot {name!r} starts at ({pose[0]:g}, {pose[1]:g}), where it "
                                "does not fit")  # fmt: skip
     fleet = SimulatedFleet(world, body_space, config, starts, seed)
-    loop = MissionLoop(fleet, mission, config, work, concurrent=concurrent, progress=status)
+    loop = MissionLoop(
+        fleet, mission, config, work, concurrent=concurrent, progress=status, observe=observe
+    )
     try:
         reason = loop.run()
     except BaseException:

@@ -1,10 +1,15 @@
-"""Writing a ROS 2 bag as one MCAP file under coopmap's output rules (docs/results.md).
+"""Writing a ROS 2 bag as one MCAP file under coopmap's output rules (docs/results.md), and
+reading any ROS bag with one-line errors.
 
 The bag is written by rosbags' rosbag2 writer (MCAP storage) into a hidden folder beside the
 target, marked as coopmap's (kind ``mcap``), and its ``.mcap`` file then takes the target's
 place in one rename: a failed export leaves the old file as it was. The rosbag2 metadata inside
 the file carries ``custom_data: {coopmap: <version>}``; an existing target without it — a file
 coopmap did not write — is refused, and so are folders and symbolic links.
+
+Any ROS 1 or ROS 2 bag (MCAP, sqlite3) is read with ``rosbags.highlevel.AnyReader``
+(:func:`open_bag`, :func:`bag_messages`); a file that is not a bag, or a damaged one, is one
+``EstimationError`` naming the file.
 """
 
 from __future__ import annotations
@@ -13,21 +18,36 @@ import contextlib
 import json
 import os
 import shutil
+import sqlite3
 import struct
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
+from rosbags.highlevel import AnyReader, AnyReaderError
+from rosbags.interfaces import Connection
+from rosbags.rosbag1 import ReaderError as Rosbag1Error
+from rosbags.rosbag2 import ReaderError as Rosbag2Error
+from rosbags.serde import SerdeError
 
 from estimation import __version__
 from estimation.app.ros.messages import RosMessages
+from estimation.errors import EstimationError
 from sensors.atomic import MARKER, remove_leftovers
 from sensors.errors import OutputError
 
-__all__ = ["BagMessage", "check_mcap_replaceable", "coopmap_wrote", "write_mcap"]
+__all__ = [
+    "BagMessage",
+    "bag_messages",
+    "check_mcap_replaceable",
+    "coopmap_wrote",
+    "header_stamp_ns",
+    "open_bag",
+    "write_mcap",
+]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 #: A footer record: opcode, length (20), summary start, summary offset start, summary CRC.
@@ -36,6 +56,10 @@ _OP_METADATA, _OP_METADATA_INDEX = 0x0C, 0x0D
 #: rosbag2 metadata of a bag of a few hundred topics stays far below this.
 _METADATA_LIMIT_BYTES = 16 * 2**20
 _KIND = "mcap"
+#: What a damaged or foreign file makes rosbags raise while it is opened or read.
+_READ_ERRORS = (AnyReaderError, Rosbag1Error, Rosbag2Error, SerdeError, sqlite3.Error,
+                struct.error, EOFError, ValueError, KeyError, IndexError, TypeError,
+                OverflowError, UnicodeDecodeError, AssertionError, MemoryError)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -187,3 +211,60 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+def open_bag(bag: Path) -> AnyReader:
+    """An open reader of a ROS 1 bag, a ROS 2 bag folder or a single ``.mcap``/``.db3`` file
+    (close it when done); messages without definitions in the bag use ``RosMessages``' types."""
+    if not bag.exists():
+        raise EstimationError(f"{bag}: no such file or folder")
+    try:
+        reader = AnyReader([bag], default_typestore=RosMessages().store)
+        reader.open()
+    except FileNotFoundError:
+        raise EstimationError(
+            f"{bag}: not a ROS bag (a rosbag2 folder needs its metadata.yaml)"
+        ) from None
+    except _READ_ERRORS as exc:
+        raise EstimationError(f"{bag}: not a readable ROS bag ({_reason(exc)})") from None
+    return reader
+
+
+def _reason(exc: BaseException) -> str:
+    text = " ".join(str(a) for a in exc.args) or type(exc).__name__
+    return text if len(text) <= 200 else text[:200] + "…"
+
+
+def bag_messages(
+    reader: AnyReader, connections: list[Connection], bag: Path
+) -> Iterator[tuple[Connection, int, Any]]:
+    """(connection, log time ns, message) of ``connections`` in log-time order (a topic's
+    messages of one log time in the order they were written); a damaged bag is one error, and
+    so is a topic of which fewer messages can be read than the bag's index counts."""
+    if not connections:
+        return
+    stream = reader.messages(connections=connections)
+    read = dict.fromkeys((c.topic for c in connections), 0)
+    while True:
+        try:
+            connection, log_ns, raw = next(stream)
+            message = reader.deserialize(raw, connection.msgtype)
+        except StopIteration:
+            break
+        except _READ_ERRORS as exc:
+            raise EstimationError(f"{bag}: corrupt bag ({_reason(exc)})") from None
+        read[connection.topic] += 1
+        yield connection, log_ns, message
+    for topic, n in read.items():
+        expected = sum(c.msgcount for c in connections if c.topic == topic)
+        if n < expected:
+            raise EstimationError(
+                f"{bag}: corrupt bag ({topic}: {n:,} of its {expected:,} messages are readable)"
+            )
+
+
+def header_stamp_ns(message: Any, log_ns: int) -> int:
+    """A message's header stamp (ns), or ``log_ns`` when the header has none (zero)."""
+    stamp = message.header.stamp
+    ns = int(stamp.sec) * 10**9 + int(stamp.nanosec)
+    return ns if ns > 0 else log_ns

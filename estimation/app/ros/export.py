@@ -5,6 +5,8 @@ Topics (frames ``map``, ``<robot>/odom``, ``<robot>/base_link``, ``<robot>/scann
 
 * ``/map`` ``nav_msgs/OccupancyGrid`` — the ceiling band (0–100, unknown −1), at the end;
 * ``/map/points`` ``sensor_msgs/PointCloud2`` — occupied voxel centres with their probability;
+* ``/map/voxels`` ``foxglove_msgs/VoxelGrid`` — the box around the occupied voxels, every cell
+  with its probability (NaN unknown) and a colour (by height; transparent unless occupied);
 * ``/octomap_binary`` ``octomap_msgs/Octomap`` — the binary tree of ``map.bt``;
 * ``/<robot>/path`` ``nav_msgs/Path`` — the poses so far, at each pose's stamp;
 * ``/<robot>/pose`` ``geometry_msgs/PoseWithCovarianceStamped`` — each pose and its marginal;
@@ -13,6 +15,9 @@ Topics (frames ``map``, ``<robot>/odom``, ``<robot>/base_link``, ``<robot>/scann
   ``map`` = ``odom``, when the dataset is not at hand);
 * ``/tf_static`` — scanner and beacon mounts;
 * ``/markers`` ``visualization_msgs/MarkerArray`` — mutual observations and search results.
+
+The live view (:mod:`estimation.app.ros.live_view`) publishes the same messages, built by
+:func:`result_messages`, over a Foxglove WebSocket.
 """
 
 from __future__ import annotations
@@ -33,11 +38,24 @@ from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import load_map
 from mapping.formats.octomap_bt import encode_bt, tree_stream
+from mapping.grid import OccupancyGrid
+from mapping.logodds import probability
 from sensors.geometry import se2
 from sensors.trajio import pose_at, read_tum
 from sensors.yamlio import read_text_file
 
-__all__ = ["ExportSummary", "Trajectory", "export_result", "read_trajectories"]
+__all__ = [
+    "VOXEL_DTYPE",
+    "ExportSummary",
+    "ResultContent",
+    "Trajectory",
+    "export_result",
+    "read_result",
+    "read_trajectories",
+    "result_messages",
+    "static_tf",
+    "voxel_block",
+]
 
 #: report.json and covariances.json of a very long mission stay far below this.
 _JSON_LIMIT_BYTES = 512 * 2**20
@@ -47,6 +65,14 @@ _MUTUAL_COLORS = {
     "rejected": Color(0.9, 0.1, 0.1),
 }
 _POSE_TYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
+#: One cell of ``/map/voxels``: its probability of occupancy (NaN unknown) and its colour.
+VOXEL_DTYPE = np.dtype(
+    [("probability", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")]
+)
+#: Height colours of occupied voxels, bottom to top of the box (blue, cyan, green, yellow, red).
+_HEIGHT_COLORS = np.array(
+    [[48, 18, 160], [30, 160, 230], [60, 200, 80], [240, 200, 30], [200, 30, 20]], dtype=float
+)
 _SEARCH_COLORS = {
     "used": Color(0.15, 0.4, 1.0),
     "unused": Color(0.6, 0.6, 0.6),
@@ -63,6 +89,20 @@ class Trajectory:
     stamps_s: np.ndarray
     poses: np.ndarray
     covariances: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class ResultContent:
+    """A result folder as its ROS topics need it: the effective config, ``report.json``, the
+    robots' poses, the dataset's odometry (None when not at hand), the 3D map and what had to
+    be left out."""
+
+    config: Config
+    report: dict[str, Any]
+    trajectories: dict[str, Trajectory]
+    odometry: dict[str, tuple[np.ndarray, np.ndarray]] | None
+    grid: OccupancyGrid
+    notes: list[str]
 
 
 @dataclass(frozen=True)
@@ -129,7 +169,7 @@ def _frames(robot: str) -> tuple[str, str]:
     return f"{robot}/odom", f"{robot}/base_link"
 
 
-def _static_tf(ros: RosMessages, config: Config, robots: list[str]) -> BagMessage:
+def static_tf(ros: RosMessages, config: Config, robots: list[str]) -> BagMessage:
     """The mounts on every robot: scanner (``T_robot_scanner``) and beacon (``beacon.offset_m``
     ahead of the scanner, centre ``beacon.height_m`` above the floor); axes as the robot's."""
     mount = T_robot_scanner(config)
@@ -247,11 +287,37 @@ def _markers(
     return markers
 
 
+def voxel_block(grid: OccupancyGrid) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box of cells around the occupied voxels (P > ``occupied_threshold``): its lowest cell
+    index (3,) and a (nz, ny, nx) array of ``VOXEL_DTYPE`` indexed [k, j, i] by the cell's
+    offset from it. Known cells carry their probability, unknown cells NaN; occupied cells are
+    opaque and coloured by height, the others transparent. None when no voxel is occupied."""
+    cells, values = grid.cells()
+    occupied = values > grid.params.logodds_threshold
+    if not occupied.any():
+        return None
+    lower, upper = cells[occupied].min(axis=0), cells[occupied].max(axis=0)
+    nx, ny, nz = (upper - lower + 1).tolist()
+    block = np.zeros((nz, ny, nx), dtype=VOXEL_DTYPE)
+    block["probability"] = np.nan
+    inside = np.all((cells >= lower) & (cells <= upper), axis=1)
+    i, j, k = (cells[inside] - lower).T
+    block["probability"][k, j, i] = probability(values[inside])
+    i, j, k = (cells[occupied] - lower).T
+    height = k / max(nz - 1, 1) * (len(_HEIGHT_COLORS) - 1)
+    stops = np.arange(len(_HEIGHT_COLORS))
+    for c, name in enumerate(("red", "green", "blue")):
+        block[name][k, j, i] = np.rint(np.interp(height, stops, _HEIGHT_COLORS[:, c]))
+    block["alpha"][k, j, i] = 255
+    return lower, block
+
+
 def _map_messages(
-    ros: RosMessages, ns: int, result: Path, config: Config, notes: list[str]
-) -> list[BagMessage]:
-    grid = load_map(result / "map.npz")
-    out = []
+    ros: RosMessages, ns: int, grid: OccupancyGrid, config: Config
+) -> tuple[list[BagMessage], list[str]]:
+    """The ceiling band, the occupied voxels (as points and as a voxel grid) and the OctoMap
+    tree of ``grid``; and notes on what could not be written."""
+    out, notes = [], []
     band = config.bands.ceiling
     try:
         ceiling = extract_band(
@@ -268,12 +334,19 @@ def _map_messages(
         )
     except MapError as exc:
         notes.append(f"/map not written: {exc}")
-    cells, probability = grid.occupied()
-    cloud = ros.point_cloud(ns, "map", grid.cell_centers(cells), probability)
+    cells, p_occupied = grid.occupied()
+    cloud = ros.point_cloud(ns, "map", grid.cell_centers(cells), p_occupied)
     out.append(BagMessage("/map/points", "sensor_msgs/msg/PointCloud2", ns, cloud, True))
+    block = voxel_block(grid)
+    if block is None:
+        notes.append("/map/voxels not written: no voxel is occupied")
+    else:
+        lower_m = grid.origin_m + block[0] * grid.resolution_m
+        voxels = ros.voxel_grid(ns, "map", lower_m, grid.resolution_m, block[1])
+        out.append(BagMessage("/map/voxels", "foxglove_msgs/msg/VoxelGrid", ns, voxels, True))
     if any(v != 0.0 for v in grid.params.origin_m):
         notes.append("/octomap_binary not written: the grid's lattice is not OctoMap's")
-        return out
+        return out, notes
     known, values = grid.cells()
     data = encode_bt(known, values > grid.params.logodds_threshold, grid.resolution_m)
     tree_id, resolution_m, stream = tree_stream(data)
@@ -286,19 +359,17 @@ def _map_messages(
             True,
         )
     )
-    return out
+    return out, notes
 
 
-def export_result(
-    result_dir: Path | str, mcap_path: Path | str, *, dataset_dir: Path | str | None = None
-) -> ExportSummary:
-    """Write a result folder's maps, poses, frames and markers as an MCAP bag.
+def read_result(result_dir: Path | str, *, dataset_dir: Path | str | None = None) -> ResultContent:
+    """A result folder's config, report, poses and map, and the dataset's odometry.
 
-    The odometry frames come from the dataset's ``robots/<robot>/odometry.tum``: ``dataset_dir``
-    if given, else the dataset ``report.json`` names, else the result's parent folder.
+    The odometry comes from the dataset's ``robots/<robot>/odometry.tum``: ``dataset_dir`` if
+    given (then it must be there), else the dataset ``report.json`` names, else the result's
+    parent folder.
     """
     result = Path(result_dir)
-    check_mcap_replaceable(mcap_path)
     report_path = result / "report.json"
     if not report_path.is_file():
         raise EstimationError(f"{result}: no result here (report.json missing): run coopmap batch")
@@ -307,29 +378,45 @@ def export_result(
     trajectories = read_trajectories(result, report)
     if not trajectories:
         raise EstimationError(f"{result}: no robot has poses (poses/<robot>.tum)")
-    robots = list(trajectories)
     candidates = (
         [Path(dataset_dir)]
         if dataset_dir is not None
         else [Path(str(report.get("dataset", result.parent))), result.parent]
     )
-    odometry = _odometry(candidates, robots, required=dataset_dir is not None)
+    odometry = _odometry(candidates, list(trajectories), required=dataset_dir is not None)
     notes = []
     if odometry is None:
         notes.append("no dataset odometry found: <robot>/odom is the map frame")
     if any(t.covariances is None for t in trajectories.values()):
         notes.append("the result holds no covariances.json: pose covariances are zero")
-    last = [float(t.stamps_s.max()) for t in trajectories.values()]
-    last += [float(o[0].max()) for o in (odometry or {}).values()]
-    end_ns = stamp_ns(max(last))
-    ros = RosMessages()
-    messages = [_static_tf(ros, config, robots)]
+    grid = load_map(result / "map.npz")
+    return ResultContent(config, report, trajectories, odometry, grid, notes)
+
+
+def result_messages(
+    ros: RosMessages,
+    config: Config,
+    trajectories: dict[str, Trajectory],
+    grid: OccupancyGrid,
+    *,
+    odometry: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    report: dict[str, Any] | None = None,
+) -> tuple[list[BagMessage], list[str]]:
+    """Every topic's messages of a mission's state: frames, paths and poses at their stamps;
+    maps and markers (from ``report``'s mutual observations and searches) at its end, the
+    latest stamp of the poses and the odometry. Also notes on what could not be written."""
+    robots = list(trajectories)
+    last = [float(t.stamps_s.max()) for t in trajectories.values() if len(t.stamps_s)]
+    last += [float(o[0].max()) for o in (odometry or {}).values() if len(o[0])]
+    end_ns = stamp_ns(max(last, default=0.0))
+    messages = [static_tf(ros, config, robots)]
     for robot, trajectory in trajectories.items():
         messages += _robot_messages(
             ros, robot, trajectory, None if odometry is None else odometry[robot]
         )
-    messages += _map_messages(ros, end_ns, result, config, notes)
-    markers = _markers(ros, end_ns, report, trajectories, config.beacon.height_m)
+    maps, notes = _map_messages(ros, end_ns, grid, config)
+    messages += maps
+    markers = _markers(ros, end_ns, report or {}, trajectories, config.beacon.height_m)
     if markers:
         messages.append(
             BagMessage(
@@ -340,8 +427,30 @@ def export_result(
                 True,
             )
         )
+    return messages, notes
+
+
+def export_result(
+    result_dir: Path | str, mcap_path: Path | str, *, dataset_dir: Path | str | None = None
+) -> ExportSummary:
+    """Write a result folder's maps, poses, frames and markers as an MCAP bag.
+
+    The odometry frames come from the dataset's ``robots/<robot>/odometry.tum``: ``dataset_dir``
+    if given, else the dataset ``report.json`` names, else the result's parent folder.
+    """
+    check_mcap_replaceable(mcap_path)
+    content = read_result(result_dir, dataset_dir=dataset_dir)
+    ros = RosMessages()
+    messages, notes = result_messages(
+        ros,
+        content.config,
+        content.trajectories,
+        content.grid,
+        odometry=content.odometry,
+        report=content.report,
+    )
     path = write_mcap(mcap_path, messages, ros)
     topics: dict[str, int] = {}
     for m in messages:
         topics[m.topic] = topics.get(m.topic, 0) + 1
-    return ExportSummary(path, topics, notes)
+    return ExportSummary(path, topics, content.notes + notes)

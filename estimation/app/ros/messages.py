@@ -20,6 +20,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from mapping.band import Band
 
 __all__ = [
+    "FOXGLOVE_PACKED_ELEMENT_FIELD_MSG",
+    "FOXGLOVE_VOXEL_GRID_MSG",
     "OCTOMAP_MSG",
     "ROS_DISTRO",
     "Color",
@@ -48,6 +50,46 @@ float64 resolution
 
 # binary serialization of octree, use conversions.h to read and write octrees
 int8[] data
+"""
+#: ``foxglove_msgs/msg/PackedElementField`` and ``foxglove_msgs/msg/VoxelGrid`` as Foxglove's
+#: schema reference (docs.foxglove.dev, "VoxelGrid") defines them for ROS 2; Foxglove's 3D panel
+#: knows them by these names.
+FOXGLOVE_PACKED_ELEMENT_FIELD_MSG = """\
+string name
+uint32 offset
+uint8 UNKNOWN=0
+uint8 UINT8=1
+uint8 INT8=2
+uint8 UINT16=3
+uint8 INT16=4
+uint8 UINT32=5
+uint8 INT32=6
+uint8 FLOAT32=7
+uint8 FLOAT64=8
+uint8 type
+"""
+FOXGLOVE_VOXEL_GRID_MSG = """\
+builtin_interfaces/Time timestamp
+string frame_id
+geometry_msgs/Pose pose
+uint32 row_count
+uint32 column_count
+geometry_msgs/Vector3 cell_size
+uint32 slice_stride
+uint32 row_stride
+uint32 cell_stride
+foxglove_msgs/PackedElementField[] fields
+uint8[] data
+"""
+#: ``coopmap_msgs/msg/LmsRaw``: one record of an LMS capture (docs/dataset.md, docs/ros.md).
+#: ``stamp`` has nanosecond resolution; ``stamp_s`` keeps the capture's float64 stamp exactly,
+#: so a capture goes through a bag byte for byte.
+LMS_RAW_MSG = """\
+# One record of a coopmap LMS capture: bytes as read from the LMS 200's serial port in one go.
+builtin_interfaces/Time stamp   # receive time on the mission clock
+float64 stamp_s                 # the same, as the capture holds it (float64 seconds, exact)
+string capture_header           # the capture's JSON header line: in the first record only
+uint8[] data                    # the bytes, as read
 """
 #: A planar pose (x_m, y_m, yaw_rad).
 PlanarPose = Sequence[float] | np.ndarray
@@ -82,11 +124,18 @@ class Color:
 
 
 class RosMessages:
-    """Message factory on one typestore (``ROS_DISTRO`` plus ``octomap_msgs/msg/Octomap``)."""
+    """Message factory on one typestore (``ROS_DISTRO`` plus ``octomap_msgs/msg/Octomap`` and
+    ``coopmap_msgs/msg/LmsRaw``)."""
 
     def __init__(self) -> None:
         self.store = get_typestore(ROS_DISTRO)
         self.store.register(get_types_from_msg(OCTOMAP_MSG, "octomap_msgs/msg/Octomap"))
+        self.store.register(get_types_from_msg(LMS_RAW_MSG, "coopmap_msgs/msg/LmsRaw"))
+        for text, name in (
+            (FOXGLOVE_PACKED_ELEMENT_FIELD_MSG, "foxglove_msgs/msg/PackedElementField"),
+            (FOXGLOVE_VOXEL_GRID_MSG, "foxglove_msgs/msg/VoxelGrid"),
+        ):
+            self.store.register(get_types_from_msg(text, name))
         self._types = self.store.types
 
     def _type(self, name: str) -> Any:
@@ -94,6 +143,11 @@ class RosMessages:
 
     def serialize(self, message: Any) -> bytes:
         return bytes(self.store.serialize_cdr(message, message.__msgtype__))
+
+    def msgdef(self, msgtype: str) -> str:
+        """The ``ros2msg`` schema text of ``msgtype`` with its dependencies, as MCAP and the
+        Foxglove WebSocket protocol carry it."""
+        return str(self.store.generate_msgdef(msgtype, ros_version=2)[0])
 
     # -- building blocks --------------------------------------------------------------------
 
@@ -269,4 +323,110 @@ class RosMessages:
             id=tree_id,
             resolution=float(resolution_m),
             data=np.frombuffer(stream, dtype=np.int8).copy(),
+        )
+
+    def voxel_grid(
+        self,
+        ns: int,
+        frame_id: str,
+        lower_corner_m: Sequence[float] | np.ndarray,
+        cell_size_m: float,
+        cells: np.ndarray,
+    ) -> Any:
+        """``foxglove_msgs/VoxelGrid`` of a block of cells: ``cells`` is a structured (nz, ny, nx)
+        array (depth-, then row-major: z, y, x) whose fields (float32 or uint8) become the
+        message's packed fields; cell (0, 0, 0) has its lower corner at ``lower_corner_m``
+        (x, y, z in m) of the frame, the grid's axes are the frame's."""
+        field = self._type("foxglove_msgs/msg/PackedElementField")
+        kinds = {"<f4": field.FLOAT32, "|u1": field.UINT8}
+        block = np.ascontiguousarray(cells)
+        _, rows, columns = block.shape
+        fields = []
+        for name, (dtype, offset, *_) in (block.dtype.fields or {}).items():
+            fields.append(field(name=name, offset=offset, type=kinds[dtype.str]))
+        step = block.dtype.itemsize
+        size = float(cell_size_m)
+        x, y, z = (float(v) for v in lower_corner_m)
+        return self._type("foxglove_msgs/msg/VoxelGrid")(
+            timestamp=self.time(ns),
+            frame_id=frame_id,
+            pose=self.pose((x, y, 0.0), z),
+            row_count=rows,
+            column_count=columns,
+            cell_size=self._type("geometry_msgs/msg/Vector3")(x=size, y=size, z=size),
+            slice_stride=step * rows * columns,
+            row_stride=step * columns,
+            cell_stride=step,
+            fields=fields,
+            data=block.reshape(-1).view(np.uint8),
+        )
+
+    def string(self, text: str) -> Any:
+        return self._type("std_msgs/msg/String")(data=text)
+
+    def laser_scan(
+        self,
+        ns: int,
+        frame_id: str,
+        *,
+        angles_rad: tuple[float, float, float],
+        times_s: tuple[float, float],
+        limits_m: tuple[float, float],
+        ranges_m: np.ndarray,
+        intensities: np.ndarray,
+    ) -> Any:
+        """``sensor_msgs/LaserScan``: ``angles_rad`` (min, max, increment) counter-clockwise from
+        straight ahead, ``times_s`` (time_increment, scan_time), ``limits_m`` (range_min,
+        range_max); ranges (m) and intensities as float32."""
+        angle_min, angle_max, increment = angles_rad
+        return self._type("sensor_msgs/msg/LaserScan")(
+            header=self.header(ns, frame_id),
+            angle_min=float(angle_min),
+            angle_max=float(angle_max),
+            angle_increment=float(increment),
+            time_increment=float(times_s[0]),
+            scan_time=float(times_s[1]),
+            range_min=float(limits_m[0]),
+            range_max=float(limits_m[1]),
+            ranges=np.asarray(ranges_m, dtype=np.float32),
+            intensities=np.asarray(intensities, dtype=np.float32),
+        )
+
+    def odometry(
+        self,
+        ns: int,
+        frame_id: str,
+        child_frame_id: str,
+        xyz: Sequence[float],
+        xyzw: Sequence[float],
+    ) -> Any:
+        """``nav_msgs/Odometry`` of a pose given as position ``xyz`` (m) and quaternion ``xyzw``,
+        exactly as given (no normalisation); covariances and twist zero."""
+        x, y, z = (float(v) for v in xyz)
+        pose = self._type("geometry_msgs/msg/Pose")(
+            position=self._type("geometry_msgs/msg/Point")(x=x, y=y, z=z),
+            orientation=self.quaternion(xyzw),
+        )
+        vector = self._type("geometry_msgs/msg/Vector3")
+        twist = self._type("geometry_msgs/msg/Twist")(
+            linear=vector(x=0.0, y=0.0, z=0.0), angular=vector(x=0.0, y=0.0, z=0.0)
+        )
+        return self._type("nav_msgs/msg/Odometry")(
+            header=self.header(ns, frame_id),
+            child_frame_id=child_frame_id,
+            pose=self._type("geometry_msgs/msg/PoseWithCovariance")(
+                pose=pose, covariance=np.zeros(36)
+            ),
+            twist=self._type("geometry_msgs/msg/TwistWithCovariance")(
+                twist=twist, covariance=np.zeros(36)
+            ),
+        )
+
+    def lms_raw(self, stamp_s: float, data: bytes, capture_header: str = "") -> Any:
+        """``coopmap_msgs/LmsRaw`` of one capture record (``LMS_RAW_MSG``)."""
+        return self._type("coopmap_msgs/msg/LmsRaw")(
+            stamp=self.time(stamp_ns(stamp_s)),
+            stamp_s=float(stamp_s),
+            capture_header=capture_header,
+            data=np.frombuffer(data, dtype=np.uint8).copy(),
         )

@@ -85,7 +85,10 @@ def run_simulation(
     seed: int | None = None,
     progress: Callable[[str, float], None] | None = None,
     status: Callable[[str], None] | None = None,
+    observe: Callable[[Any], None] | None = None,
 ) -> SimulationResult:
+    """Simulate the mission into ``out_dir``. ``observe`` is called with the mission loop after
+    every dwell (missions flown by the loop only: ``plan: auto``, ``auto.planner: map``)."""
     mission_path = Path(mission_path)
     check_replaceable(Path(out_dir), "dataset")  # before the work, not after it
     mission = load_mission(mission_path)
@@ -97,7 +100,8 @@ def run_simulation(
     space = robot_free_space(world, config)
 
     if mission.plan == "auto" and mission.auto.planner == "map":
-        return _fly_loop(mission, config, world, space, seed, Path(out_dir), mission_path, status)
+        return _fly_loop(mission, config, world, space, seed, Path(out_dir), mission_path,
+                         status, observe)  # fmt: skip
     if mission.plan == "auto":
         from estimation.app.sim.planning import plan_leapfrog
 
@@ -176,12 +180,14 @@ def run_simulation(
 
 def _fly_loop(mission: MissionSpec, config: Config, world: World, space: FreeSpace, seed: int,
               out_dir: Path, mission_path: Path,
-              status: Callable[[str], None] | None) -> SimulationResult:  # fmt: skip
+              status: Callable[[str], None] | None,
+              observe: Callable[[Any], None] | None = None) -> SimulationResult:  # fmt: skip
     """``plan: auto`` with the mission loop: estimation and planning during the mission."""
     from estimation.app.mission.simulated import fly
 
     with replace_directory(out_dir, "dataset") as work:
-        flown = fly(mission, config, world, space, seed, work, final=out_dir, status=status)
+        flown = fly(mission, config, world, space, seed, work, final=out_dir, status=status,
+                    observe=observe)  # fmt: skip
     report = flown.output.report
     return SimulationResult(
         out_dir=out_dir, mission=mission_path.stem, world=world.name, seed=seed,

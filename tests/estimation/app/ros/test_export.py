@@ -21,6 +21,7 @@ from estimation.app.sim.simulate import run_simulation
 from mapping.band import extract_band
 from mapping.formats.npz import load_map
 from mapping.formats.octomap_bt import tree_stream
+from mapping.grid import OccupancyGrid
 from sensors.geometry import se2
 from sensors.trajio import read_tum
 from tests.paths import REPO
@@ -83,6 +84,7 @@ def test_topics_types_and_counts(exported: tuple[Path, Path, Messages]) -> None:
     assert types == {
         "/map": {"nav_msgs/msg/OccupancyGrid"},
         "/map/points": {"sensor_msgs/msg/PointCloud2"},
+        "/map/voxels": {"foxglove_msgs/msg/VoxelGrid"},
         "/octomap_binary": {"octomap_msgs/msg/Octomap"},
         "/a/path": {"nav_msgs/msg/Path"},
         "/b/path": {"nav_msgs/msg/Path"},
@@ -96,12 +98,14 @@ def test_topics_types_and_counts(exported: tuple[Path, Path, Messages]) -> None:
     assert counts["/tf"] == sum(poses.values()) + sum(odometry.values())
     for r in "ab":
         assert counts[f"/{r}/path"] == counts[f"/{r}/pose"] == poses[r]
-    for topic in ("/map", "/map/points", "/octomap_binary", "/markers", "/tf_static"):
+    for topic in ("/map", "/map/points", "/map/voxels", "/octomap_binary", "/markers",
+                  "/tf_static"):  # fmt: skip
         assert counts[topic] == 1
     # Every header is stamped with its log time (mission time in ROS time).
     for topic, rows in messages.items():
-        if topic not in ("/tf", "/tf_static", "/markers"):
+        if topic not in ("/tf", "/tf_static", "/markers", "/map/voxels"):
             assert all(ns(m.header.stamp) == t for t, _, m in rows), topic
+    assert ns(messages["/map/voxels"][0][2].timestamp) == messages["/map/voxels"][0][0]
     end = messages["/map"][0][0]
     assert end == round(max(read_tum(dataset / "robots" / r / "odometry.tum")[0][-1]
                             for r in "ab") * 1e9)  # fmt: skip
@@ -111,12 +115,15 @@ def test_map_is_the_ceiling_band_with_unknown_cells_at_minus_one(
     exported: tuple[Path, Path, Messages],
 ) -> None:
     dataset, _, messages = exported
-    result = dataset / "result"
+    check_ceiling_band(messages["/map"][0][2], dataset / "result")
+
+
+def check_ceiling_band(grid: Any, result: Path) -> None:
+    """``grid`` (a decoded ``nav_msgs/OccupancyGrid``) is the result's ceiling band."""
     config = load_config(result / "config.yaml")
     band = extract_band(load_map(result / "map.npz"), config.bands.ceiling.min_m,
                         config.bands.ceiling.max_m,
                         free_min_observed=config.bands.free_min_observed)  # fmt: skip
-    grid = messages["/map"][0][2]
     assert grid.header.frame_id == "map"
     assert (grid.info.height, grid.info.width) == band.shape
     assert grid.info.resolution == pytest.approx(band.resolution_m, rel=1e-6)
@@ -144,6 +151,47 @@ def test_points_are_the_occupied_voxels_with_their_probability(
     np.testing.assert_allclose(table[:, :3], grid.cell_centers(cells), atol=1e-5)
     np.testing.assert_allclose(table[:, 3], probability, atol=1e-6)
     assert table[:, 3].min() > grid.params.occupied_threshold
+
+
+def test_voxels_are_the_box_of_occupied_cells_of_the_map(
+    exported: tuple[Path, Path, Messages],
+) -> None:
+    dataset, _, messages = exported
+    check_voxel_grid(messages["/map/voxels"][0][2], load_map(dataset / "result" / "map.npz"))
+
+
+def check_voxel_grid(voxels: Any, grid: OccupancyGrid) -> None:
+    """``voxels`` (a decoded ``foxglove_msgs/VoxelGrid``) is the box around the occupied cells
+    of ``grid``: every occupied voxel opaque at its cell with its probability, the other known
+    cells transparent with theirs, unknown cells NaN."""
+    cells, probability = grid.occupied()
+    known, logodds = grid.cells()
+    res = grid.resolution_m
+    lower = cells.min(axis=0)
+    nx, ny, nz = (cells.max(axis=0) - lower + 1).tolist()
+    assert voxels.frame_id == "map"
+    assert (voxels.cell_size.x, voxels.cell_size.y, voxels.cell_size.z) == (res, res, res)
+    assert planar(voxels.pose).tolist() == [*(grid.origin_m + lower * res)[:2], 0.0]
+    assert voxels.pose.position.z == pytest.approx(grid.origin_m[2] + lower[2] * res, abs=1e-12)
+    assert (voxels.column_count, voxels.row_count) == (nx, ny)
+    assert (voxels.cell_stride, voxels.row_stride, voxels.slice_stride) == (8, 8 * nx, 8 * nx * ny)
+    assert [(f.name, f.offset, f.type) for f in voxels.fields] == [
+        ("probability", 0, 7), ("red", 4, 1), ("green", 5, 1), ("blue", 6, 1), ("alpha", 7, 1)]  # fmt: skip
+    assert len(voxels.data) == 8 * nx * ny * nz
+    dtype = np.dtype([("probability", "<f4"), ("rgba", "u1", 4)])
+    block = np.frombuffer(bytes(voxels.data), dtype=dtype).reshape(nz, ny, nx)
+    i, j, k = (cells - lower).T
+    assert (block["rgba"][k, j, i, 3] == 255).all()
+    assert (block["rgba"][..., 3] == 255).sum() == len(cells) > 10_000
+    np.testing.assert_allclose(block["probability"][k, j, i], probability, rtol=1e-6)
+    inside = np.all((known >= lower) & (known < lower + np.array([nx, ny, nz])), axis=1)
+    assert np.isfinite(block["probability"]).sum() == inside.sum() > len(cells)
+    i, j, k = (known[inside] - lower).T
+    expected = 1 / (1 + np.exp(-logodds[inside]))
+    np.testing.assert_allclose(block["probability"][k, j, i], expected, rtol=1e-6)
+    # Coloured by height: the lowest occupied voxels blue, the highest red.
+    assert block["rgba"][0][block["rgba"][0][..., 3] == 255][:, 2].min() > 150
+    assert block["rgba"][-1][block["rgba"][-1][..., 3] == 255][:, 0].min() > 150
 
 
 def test_octomap_carries_the_tree_of_map_bt(exported: tuple[Path, Path, Messages]) -> None:
@@ -292,7 +340,7 @@ def test_export_command_rewrites_its_own_bag_and_refuses_other_files(
     runner = CliRunner()
     result = runner.invoke(app, ["export", str(dataset / "result"), "--mcap", str(bag)])
     assert result.exit_code == 0, result.output
-    assert "coopmap export: 10 topics" in result.output
+    assert "coopmap export: 11 topics" in result.output
     assert "/octomap_binary" in result.output
     foreign = tmp_path / "mine.mcap"
     foreign.write_bytes(b"\x89MCAP0\r\n my notes")
