@@ -21,11 +21,11 @@ from estimation.app.config import Config, ConfigError, config_from_mapping
 from estimation.app.rig import mirror_geometry
 from estimation.search.stations import Dwell, Station, View
 from sensors.errors import SensorError
-from sensors.lms200.capture import CaptureReader
-from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
-from sensors.lms200.protocol.scan import Scan, decode_scan
-from sensors.lms200.protocol.stream import StreamParser, Telegram
-from sensors.lms200.protocol.telegram import BAUD_RATES, ProtocolError
+from sensors.lms200.capture import CaptureReader, CaptureStream
+from sensors.lms200.decoder import ScanDecoder
+from sensors.lms200.protocol.plausibility import ScanLimits
+from sensors.lms200.protocol.scan import Scan
+from sensors.lms200.protocol.telegram import BAUD_RATES
 from sensors.scan3d.beacon import BeaconDetection
 from sensors.scan3d.mirror import Scan3D, ScanClock, assemble_sweeps, estimate_mirror
 from sensors.trajio import read_tum
@@ -257,57 +257,57 @@ class LmsDecoder:
     """One robot's LMS byte stream decoded as it arrives: measured-value telegrams become scans
     with measurement times (:class:`~sensors.scan3d.mirror.ScanClock`); ``stream()`` is the
     :class:`RobotStream` of everything so far, the same as :func:`decode_robot` of the same
-    bytes."""
+    bytes (both run :class:`~sensors.lms200.decoder.ScanDecoder`)."""
 
     def __init__(self, measuring_mode: int, limits: ScanLimits | None = None,
                  header: dict[str, Any] | None = None) -> None:  # fmt: skip
         self.measuring_mode = measuring_mode
-        self.parser = StreamParser()
-        self.check: ScanCheck | None = None
         if limits is not None:
             baud = (header or {}).get("baud_rate")
-            self.check = ScanCheck(
-                replace(limits, baud_rate=int(baud)) if baud in BAUD_RATES else limits
-            )
+            limits = replace(limits, baud_rate=int(baud)) if baud in BAUD_RATES else limits
+        self.decoder = ScanDecoder(measuring_mode, limits)
         self.scans: list[Scan] = []
         self.clock = ScanClock()
-        self.decoded = self.undecodable = 0
-        self.last_stamp: float | None = None
+
+    @property
+    def decoded(self) -> int:
+        return self.decoder.stats.decoded
+
+    @property
+    def undecodable(self) -> int:
+        return self.decoder.stats.undecodable
 
     def feed(self, stamp: float | None, chunk: bytes) -> int:
         """Parse one received chunk; returns how many scans it completed."""
-        before = len(self.scans)
-        self.last_stamp = stamp
-        for event in self.parser.feed(chunk, stamp):
-            if isinstance(event, Telegram) and event.code == 0xB0:
-                try:
-                    scan = decode_scan(event, self.measuring_mode)
-                except ProtocolError:
-                    self.undecodable += 1
-                    continue
-                self.decoded += 1
-                if scan.stamp_s is not None and (
-                    self.check is None or self.check.check(scan) is None
-                ):
-                    self.scans.append(scan)
-                    self.clock.add(scan)
-        return len(self.scans) - before
+        return self._add(self.decoder.feed(chunk, stamp))
+
+    def feed_stream(self, stream: CaptureStream) -> int:
+        """A whole capture at once: the same as feeding its records one by one."""
+        return self._add(self.decoder.feed_stream(stream))
 
     def close(self) -> None:
-        self.parser.close(self.last_stamp)
+        self._add(self.decoder.close())
+
+    def _add(self, scans: list[Scan]) -> int:
+        self.scans += scans
+        for scan in scans:
+            self.clock.add(scan)
+        return len(scans)
 
     @property
     def implausible(self) -> dict[str, int]:
-        return dict(self.check.rejected) if self.check is not None else {}
+        check = self.decoder.check
+        return dict(check.rejected) if check is not None else {}
 
     def stream(self, truncated_bytes: int = 0, corrupt_bytes: int = 0) -> RobotStream:
+        stats = self.decoder.stats
         return RobotStream(
             scans=list(self.scans),  # a snapshot: the decoder goes on appending
             times_s=self.clock.times(),
-            telegrams=self.parser.stats.telegrams,
-            undecodable=self.undecodable,
-            checksum_failures=self.parser.stats.checksum_failures,
-            bytes_skipped=self.parser.stats.bytes_skipped,
+            telegrams=stats.telegrams,
+            undecodable=stats.undecodable,
+            checksum_failures=stats.checksum_failures,
+            bytes_skipped=stats.bytes_skipped,
             truncated_bytes=truncated_bytes,
             corrupt_bytes=corrupt_bytes,
             implausible=self.implausible,
@@ -325,8 +325,7 @@ def decode_robot(
     """
     reader = CaptureReader(capture)
     decoder = LmsDecoder(measuring_mode, limits, reader.header)
-    for stamp, chunk in reader.chunks():
-        decoder.feed(stamp, chunk)
+    decoder.feed_stream(reader.stream())
     decoder.close()
     if not decoder.decoded:
         raise SensorError(f"{capture}: no measured values in the capture")

@@ -33,8 +33,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.stats import chi2
 
+from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize, Move, Observe, Start
 from estimation.posegraph.keys import check_robot, key_label, pose_key, split_key
@@ -236,14 +236,14 @@ class GraphBuilder:
         self.pdfs: dict[int, list[tuple[PosePdf, int | None]]] = {}
         self._sources: dict[int, str] = {}
         self._anchors: dict[str, int] = {}
-        self._seed_chi2 = float(chi2.ppf(0.999, 3))
+        self._seed_chi2 = chi2_quantile(0.999, 3)
         self._latest: dict[str, int] = {}
         self._steps: dict[str, dict[int, _Step]] = {}
         self._fixes: dict[tuple[str, str], tuple[int, int, np.ndarray, np.ndarray]] = {}
         self._events = 0
         s = self.settings
         self._gate_chi2 = (
-            float(chi2.ppf(s.prediction_gate_probability, 3))
+            chi2_quantile(s.prediction_gate_probability, 3)
             if s.prediction_gate_probability is not None
             else math.inf
         )

@@ -8,8 +8,8 @@ from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.stats import chi2
 
+from estimation.chi2 import chi2_quantile
 from estimation.posegraph.graph import FactorSpec, RobustKernel
 
 if TYPE_CHECKING:
@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 __all__ = ["to_gtsam_factor", "to_gtsam_graph", "to_gtsam_values"]
 
 #: Robust kernels act on the norm of the whitened 3-vector: their width is its 95 % quantile.
-_KERNEL_WIDTH = math.sqrt(float(chi2.ppf(0.95, 3)))
+_KERNEL_WIDTH = math.sqrt(chi2_quantile(0.95, 3))
 
 
 def to_gtsam_factor(spec: FactorSpec, kernel: RobustKernel = "none") -> gtsam.NonlinearFactor:

@@ -30,8 +30,8 @@ from typing import Literal
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event
 from estimation.posegraph.graph import (
@@ -123,7 +123,7 @@ def optimize_batch(
         "huber" if robust == "huber" else "cauchy" if robust == "cauchy" else "none"
     )
     graph = to_gtsam_graph(factors, kernel)
-    cap = float(chi2.ppf(gnc_probability, 3))
+    cap = chi2_quantile(gnc_probability, 3)
     starts = [dict(initial)]
     if initialization == "best":
         lago = lago_initial_values(factors)
@@ -273,7 +273,7 @@ def _readmit(
     if len(dropped) == 0:
         return inliers
     estimate = extract_poses(result)
-    limit = float(chi2.ppf(probability, 3))
+    limit = chi2_quantile(probability, 3)
     try:
         marginals = gtsam.Marginals(_subgraph(graph, inliers), result)
     except RuntimeError:

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
+from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
@@ -153,7 +153,7 @@ def validate_stations(
     failing = [i for i, c in enumerate(checks) if not c.inside and c.search_factor_kept]
     if not failing:
         return Validation(checks=tuple(checks), flagged=())
-    stress = float(chi2.ppf(0.9, 3))
+    stress = chi2_quantile(0.9, 3)
     scored = [
         (spec.mahalanobis2(estimate), i)
         for i, spec in enumerate(factors)

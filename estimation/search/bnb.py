@@ -251,6 +251,17 @@ def _maxima(rows: np.ndarray, blocks_x: int) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True)
+def _count_reaching(bounds: np.ndarray, maxima: np.ndarray, level: float) -> int:
+    """How many bounds are ≥ ``level`` (``maxima``: each problem's largest bound)."""
+    count = 0
+    for p in np.flatnonzero(maxima >= level):
+        for y in range(bounds.shape[1]):
+            for x in range(bounds.shape[2]):
+                count += bounds[p, y, x] >= level
+    return count
+
+
+@njit(cache=True, nogil=True)
 def _reaching(bounds: np.ndarray, maxima: np.ndarray, level: float) -> np.ndarray:
     """The flat indices of the bounds ≥ ``level``, highest bound first (``maxima``: each
     problem's largest bound)."""
@@ -355,7 +366,15 @@ def lattice_best(
     top = (top * b.bounds.shape[1] * b.bounds.shape[2]) + int(np.argmax(b.bounds[top]))
     within = scan(np.array([top]))
     if within:
-        order = _reaching(b.bounds, maxima, best[0] - b.margin)
+        # Check the cap before collecting and sorting: when more blocks reach the best score
+        # so far than the budget could ever expand, the bounds prune too little to win (on the
+        # benchmark: 196 blocks for a budget of 19,000; a 4 m view on a 40 m map: 3.3 million
+        # for 127,000) and sorting them alone took longer than the FFT.
+        level = best[0] - b.margin
+        room = (costs[3] - spent[0]) / costs[1]
+        within = _count_reaching(b.bounds, maxima, level) <= room
+    if within:
+        order = _reaching(b.bounds, maxima, level)
         within = scan(order[order != top])
     if within:
         t, rest = divmod(int(best_flat[0]), len(x_m) * len(y_m))

@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
+from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
@@ -86,7 +86,7 @@ _MIN_AGE = 4
 _LOOP_SIGMAS = 3.0
 _LOOP_WINDOW_M = (4.0, 16.0)
 _LOOP_YAW_RAD = (math.radians(5.0), math.radians(30.0))
-_LOOP_GATE = float(chi2.ppf(0.999, 3))
+_LOOP_GATE = chi2_quantile(0.999, 3)
 #: A link searches this square window (side, m) around the predicted relative pose, accepts a
 #: best pose this close to the prediction, and fits its covariance to this neighbourhood.
 _LINK_WINDOW_M = 1.0

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import mmap
 import os
 import struct
 import time
@@ -27,6 +26,9 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, BinaryIO
+
+import numpy as np
+from numba import njit
 
 from sensors.errors import SensorError
 from sensors.lms200.protocol.plausibility import ScanCheck, ScanLimits
@@ -39,6 +41,7 @@ from sensors.yamlio import regular_file
 __all__ = [
     "CaptureError",
     "CaptureReader",
+    "CaptureStream",
     "CaptureWriter",
     "DecodeSummary",
     "decode_stream",
@@ -163,71 +166,143 @@ class CaptureReader:
         return self.header is not None
 
     def chunks(self, dump_chunk: int = 1 << 16) -> Iterator[tuple[float | None, bytes]]:
-        """(stamp_s, bytes) in file order.
+        """(stamp_s, bytes) in file order: the records of :meth:`stream`, one by one."""
+        stream = self.stream(dump_chunk)
+        ends = stream.ends.tolist()
+        stamps = stream.stamps_s.tolist() if self.is_capture else [None] * len(ends)
+        for start, end, stamp in zip([0, *ends][:-1], ends, stamps, strict=True):
+            yield stamp, stream.data[start:end].tobytes()
+
+    def stream(self, dump_chunk: int = 1 << 16) -> CaptureStream:
+        """The whole byte stream at once, with where each record ends and its stamp.
 
         A truncated last record is counted in ``truncated_bytes``. A corrupted record header
         (an impossible size or stamp) is skipped: the reader searches forward for the next
         header that is plausible and followed by another plausible header (or the end of the
         file), counting the bytes passed over in ``corrupt_bytes`` and each search in
-        ``resyncs``; the stream parser then resynchronises on the telegrams themselves.
+        ``resyncs``; the stream parser then resynchronises on the telegrams themselves. A plain
+        dump comes in pieces of ``dump_chunk`` bytes, without stamps (NaN).
         """
-        with open(self.path, "rb") as handle:
-            handle.seek(self._offset)
-            if not self.is_capture:
-                while chunk := handle.read(dump_chunk):
-                    yield None, chunk
-                return
-            size = os.fstat(handle.fileno()).st_size
-            if size <= self._offset:
-                return
-            with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as view:
-                yield from self._records(view, size)
-
-    def _records(self, view: mmap.mmap, end: int) -> Iterator[tuple[float, bytes]]:
-        pos, last = self._offset, None
-        while pos < end:
-            if end - pos < _RECORD.size:
-                self.truncated_bytes += end - pos
-                return
-            stamp, size = _RECORD.unpack_from(view, pos)
-            if not _plausible(stamp, size, last):
-                found = self._resync(view, pos + 1, end, last)
-                self.resyncs += 1
-                self.corrupt_bytes += found - pos
-                pos = found
-                continue
-            body_end = pos + _RECORD.size + size
-            if body_end > end:
-                self.truncated_bytes += end - pos
-                return
-            yield stamp, bytes(view[pos + _RECORD.size : body_end])
-            last, pos = stamp, body_end
-
-    @staticmethod
-    def _resync(view: mmap.mmap, pos: int, end: int, last: float | None) -> int:
-        """The first offset from ``pos`` where two plausible records follow each other."""
-        while pos + _RECORD.size <= end:
-            stamp, size = _RECORD.unpack_from(view, pos)
-            if _plausible(stamp, size, last):
-                after = pos + _RECORD.size + size
-                if after == end:
-                    return pos
-                if after + _RECORD.size <= end:
-                    next_stamp, next_size = _RECORD.unpack_from(view, after)
-                    if _plausible(next_stamp, next_size, stamp):
-                        return pos
-            pos += 1
-        return end
+        try:
+            with open(self.path, "rb") as handle:
+                handle.seek(self._offset)
+                body = np.frombuffer(handle.read(), dtype=np.uint8)
+        except OSError as exc:
+            raise CaptureError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        if not self.is_capture:
+            ends = np.append(np.arange(dump_chunk, len(body), dump_chunk), len(body))
+            ends = ends[ends > 0].astype(np.int64)
+            return CaptureStream(body, ends, np.full(len(ends), np.nan))
+        table, counts = _record_table(body, MAX_RECORD, STAMP_SLACK_S, MAX_RECORD_GAP_S)
+        truncated, corrupt, resyncs = counts.tolist()
+        self.truncated_bytes += truncated
+        self.corrupt_bytes += corrupt
+        self.resyncs += resyncs
+        data = _gather(body, table[:, 0], table[:, 1])
+        return CaptureStream(data, np.cumsum(table[:, 1]), table[:, 2].view(np.float64).copy())
 
 
-def _plausible(stamp: float, size: int, last: float | None) -> bool:
-    """A record header the writer could have written after one stamped ``last``.
+@dataclass(frozen=True)
+class CaptureStream:
+    """A capture's bytes in one array: record ``k`` is ``data[ends[k-1]:ends[k]]``."""
+
+    data: np.ndarray  # (B,) uint8
+    ends: np.ndarray  # (R,) int64, increasing
+    stamps_s: np.ndarray  # (R,) float64 s since the capture started (NaN: a plain dump)
+
+
+_HEADER = _RECORD.size
+
+
+@njit(cache=True)
+def _plausible(  # pragma: no cover - numba
+    stamp: float, size: int, last: float, limits: tuple[int, float, float]
+) -> bool:
+    """A record header the writer could have written after one stamped ``last`` (NaN: none).
 
     The writer never writes an empty record, and its stamps come from one monotonic clock.
     """
-    if not (0 < size <= MAX_RECORD and math.isfinite(stamp)):
+    if not (0 < size <= limits[0] and math.isfinite(stamp)):
         return False
-    return last is None or last - STAMP_SLACK_S <= stamp <= last + MAX_RECORD_GAP_S
+    return math.isnan(last) or last - limits[1] <= stamp <= last + limits[2]
+
+
+@njit(cache=True)
+def _header(body: np.ndarray, pos: int, scratch: np.ndarray) -> tuple[float, int]:
+    """The (stamp, size) record header at ``pos``: a little-endian float64 and uint32."""
+    scratch[:_HEADER] = body[pos : pos + _HEADER]  # pragma: no cover - numba
+    return scratch[:8].view(np.float64)[0], int(scratch[8:12].view(np.uint32)[0])
+
+
+@njit(cache=True)
+def _resync(  # pragma: no cover - numba
+    body: np.ndarray, pos: int, last: float, limits: tuple[int, float, float], scratch: np.ndarray
+) -> int:
+    """The first offset from ``pos`` where two plausible records follow each other."""
+    end = len(body)
+    while pos + _HEADER <= end:
+        stamp, size = _header(body, pos, scratch)
+        if _plausible(stamp, size, last, limits):
+            after = pos + _HEADER + size
+            if after == end:
+                return pos
+            if after + _HEADER <= end:
+                next_stamp, next_size = _header(body, after, scratch)
+                if _plausible(next_stamp, next_size, stamp, limits):
+                    return pos
+        pos += 1
+    return end
+
+
+@njit(cache=True)
+def _record_table(  # pragma: no cover - numba
+    body: np.ndarray, max_record: int, slack_s: float, gap_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(R, 3) int64 rows of body start, size and stamp (float64 bits) of every record, and
+    [truncated bytes, corrupt bytes, resyncs]."""
+    limits = (max_record, slack_s, gap_s)
+    scratch = np.zeros(16, np.uint8)
+    end = len(body)
+    rows = np.empty((max(16, end // 64), 3), np.int64)
+    found = truncated = corrupt = resyncs = 0
+    pos, last = 0, math.nan
+    while pos < end:
+        if end - pos < _HEADER:
+            truncated += end - pos
+            break
+        stamp, size = _header(body, pos, scratch)
+        if not _plausible(stamp, size, last, limits):
+            at = _resync(body, pos + 1, last, limits, scratch)
+            resyncs += 1
+            corrupt += at - pos
+            pos = at
+            continue
+        body_end = pos + _HEADER + size
+        if body_end > end:
+            truncated += end - pos
+            break
+        if found == len(rows):
+            bigger = np.empty((2 * len(rows), 3), np.int64)
+            bigger[:found] = rows[:found]
+            rows = bigger
+        rows[found, 0] = pos + _HEADER
+        rows[found, 1] = size
+        scratch[:8] = body[pos : pos + 8]
+        rows[found, 2] = scratch[:8].view(np.int64)[0]
+        found += 1
+        last, pos = stamp, body_end
+    return rows[:found], np.array([truncated, corrupt, resyncs], np.int64)
+
+
+@njit(cache=True)
+def _gather(body: np.ndarray, starts: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """The record bodies, end to end."""
+    out = np.empty(sizes.sum(), np.uint8)  # pragma: no cover - numba
+    at = 0
+    for k in range(len(starts)):
+        out[at : at + sizes[k]] = body[starts[k] : starts[k] + sizes[k]]
+        at += sizes[k]
+    return out
 
 
 # --------------------------------------------------------------------------------------------

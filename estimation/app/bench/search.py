@@ -11,7 +11,9 @@ it is timed on a subset — ``peer_rotations`` rotations spread over the circle,
 on that subset are checked against coopmap's.
 
 The best pose alone is timed too: branch and bound (``search.bnb``), exact — its lattice pose
-and score are checked against the full search's — with the pruning it achieved.
+and score are checked against the full search's — with the pruning it achieved; and beside the
+full search on cases where the bounds prune little (``PRUNING_CASES``: a 4 m view on a 10 m and
+on a 40 m map), where it must hand over to the FFT early enough never to be the slower.
 """
 
 from __future__ import annotations
@@ -29,11 +31,49 @@ from estimation.search.exhaustive import SearchParams, best_pose, search
 from estimation.search.lattice import match_values
 from estimation.search.scenes import local_view, random_building, rasterise
 
-__all__ = ["run_search_benchmark"]
+__all__ = ["compare_best_pose", "run_search_benchmark"]
 
 MAP_SIDE_M = 20.0
 LOCAL_RADIUS_M = 8.0
 TRUE_POSE = np.array([8.37, 11.21, math.radians(37.4)])
+#: (name, map side m, view radius m) of the best-pose-versus-full-search comparison, besides the
+#: benchmark's own 20 m map with its 8 m view.
+PRUNING_CASES = (("10 m map, 4 m view", 10.0, 4.0), ("40 m map, 4 m view", 40.0, 4.0))
+
+
+def compare_best_pose(
+    name: str, side_m: float, radius_m: float, params: SearchParams, resolution_m: float,
+    repeats: int, seed: int,
+) -> dict[str, Any]:  # fmt: skip
+    """Full search and best pose alone on one generated building: medians and maxima."""
+    rng = np.random.default_rng(seed)
+    scene = random_building(rng, side_m)
+    cells = round(side_m / resolution_m)
+    global_ = rasterise(scene, np.zeros(3), (0.0, 0.0), (cells, cells), resolution_m)
+    truth = np.array([0.42 * side_m, 0.56 * side_m, math.radians(37.4)])
+    local = local_view(scene, truth, radius_m, resolution_m, rng, noise=0.1,
+                       drop_fraction=0.2, flip_fraction=0.02)  # fmt: skip
+    search(local, global_, params)  # warm-up
+    full = [search(local, global_, params) for _ in range(repeats)]
+    best_pose(local, global_, params)
+    best = [best_pose(local, global_, params) for _ in range(repeats)]
+    tolerance = 1e-6 * float(np.abs(match_values(local, params.metric)).sum())
+    same = abs(best[0][1] - full[0].best_score) <= tolerance
+    return _comparison(name, [r.seconds for r in full], [b[2] for b in best], same)
+
+
+def _comparison(
+    name: str, full_s: list[float], best_s: list[float], same_score: bool
+) -> dict[str, Any]:
+    return {
+        "case": name,
+        "full_seconds": statistics.median(full_s),
+        "full_seconds_max": max(full_s),
+        "best_pose_seconds": statistics.median(best_s),
+        "best_pose_seconds_max": max(best_s),
+        "best_over_full": statistics.median(best_s) / statistics.median(full_s),
+        "same_score": bool(same_score),
+    }
 
 
 def run_search_benchmark(
@@ -96,6 +136,13 @@ def run_search_benchmark(
     scale = float(np.abs(match_values(local, params.metric)).sum())
 
     median = statistics.median(seconds)
+    scale_tolerance = 1e-6 * scale
+    cases = [
+        _comparison(f"{MAP_SIDE_M:g} m map, {LOCAL_RADIUS_M:g} m view (the benchmark)", seconds,
+                    best_seconds, abs(best_score - result.best_score) <= scale_tolerance),
+        *(compare_best_pose(name, side, radius, params, resolution_m, min(repeats, 3), seed)
+          for name, side, radius in PRUNING_CASES),
+    ]  # fmt: skip
     return {
         "benchmark": "search",
         "ratio": peer_seconds / median,
@@ -128,4 +175,5 @@ def run_search_benchmark(
         "best_pose_pruned": pruning.pruned,
         "peak_ratio": result.peak_ratio,
         "workers": params.thread_count(),
+        "best_pose_cases": cases,
     }

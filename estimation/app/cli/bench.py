@@ -73,6 +73,30 @@ def bench_scan(json_out: JsonOption = False, config: ConfigOption = None) -> Non
     )
 
 
+@bench_app.command("decode")
+@cli_errors
+def bench_decode(
+    json_out: JsonOption = False,
+    config: ConfigOption = None,
+    capture: Annotated[
+        Path | None, typer.Option(help="An LMS capture (.cap) to decode (default: simulated).")
+    ] = None,
+    telegrams: Annotated[
+        int, typer.Option(min=1, help="Telegrams of the simulated capture (office_loop: 38,000).")
+    ] = 38_000,
+    repeats: Annotated[int, typer.Option(min=1, help="Runs per path; the best is kept.")] = 3,
+) -> None:
+    """LMS capture decoding: the per-telegram reference and the vectorised decoder, µs/telegram."""
+    import json
+
+    from estimation.app.bench.decode import format_decode_report, run_decode_benchmark
+
+    cfg = option_config(config)
+    with make_console(stderr=True).status("decoding the capture both ways…", spinner="dots"):
+        result = run_decode_benchmark(cfg, capture, telegrams, repeats)
+    typer.echo(json.dumps(result) if json_out else format_decode_report(result))
+
+
 @bench_app.command("search")
 @cli_errors
 def bench_search(
@@ -114,6 +138,14 @@ def bench_search(
         f"  ratio: {r['ratio']:,.0f}× faster; pose error {r['error_m'] * 100:.1f} cm, "
         f"{r['error_deg']:.2f}°"
     )
+    typer.echo("  best pose alone vs the full search (median / max, ms):")
+    for c in r["best_pose_cases"]:
+        typer.echo(
+            f"    {c['case']:<38s} full {c['full_seconds'] * 1e3:7.1f} / "
+            f"{c['full_seconds_max'] * 1e3:7.1f}   best pose {c['best_pose_seconds'] * 1e3:7.1f} / "
+            f"{c['best_pose_seconds_max'] * 1e3:7.1f}   {c['best_over_full']:.2f}× the full "
+            f"search{'' if c['same_score'] else ' (DIFFERENT SCORE)'}"
+        )
 
 
 @bench_app.command("graph")

@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import enum
 import math
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from sensors.lms200.protocol.scan import VARIANT_BY_COUNT, Scan, scan_interval_s
+from sensors.lms200.protocol.scan import VARIANT_BY_COUNT, Scan, ScanBatch, scan_interval_s
 from sensors.lms200.protocol.telegram import (
     BAUD_RATES,
     DISTANCE_MASK,
@@ -43,7 +43,9 @@ __all__ = [
     "Implausible",
     "ScanCheck",
     "ScanLimits",
+    "ScanRules",
     "implausibility",
+    "scan_rules",
 ]
 
 
@@ -128,6 +130,107 @@ class ScanLimits:
         return round(interval / TURN_S)
 
 
+#: Implausible by the code the kernels use (0: plausible).
+_REASONS = (None, *Implausible)
+_COUNT, _LENGTH, _UNIT, _RANGE, _FLAGS, _STATUS, _SEQUENCE = range(1, 8)
+# Gaps up to 8 that are documented special codes; row 9 stands for every larger gap.
+_CODED_GAP = np.zeros(10, dtype=np.bool_)
+_CODED_GAP[list(_DOCUMENTED_GAPS)] = True
+
+
+@dataclass(frozen=True)
+class ScanRules:
+    """The rules that need no other scan, judged for many scans at once.
+
+    ``first`` is the first rule before the index-bytes rule that a scan breaks (``count``, or
+    0), ``then`` the first one after it (``unit``, ``flags``, ``range``, ``status``, or 0);
+    ``indexed`` whether it carries real-time indices.
+    """
+
+    first: np.ndarray  # (n,) int64 reason code
+    then: np.ndarray  # (n,) int64 reason code
+    indexed: np.ndarray  # (n,) bool
+
+
+@njit(cache=True)
+def _value_rules(  # pragma: no cover - numba
+    raw: np.ndarray, starts: np.ndarray, stops: np.ndarray, mask: int, stray_bits: int,
+    longest: np.ndarray, coded_gap: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Per scan (values ``raw[starts[k]:stops[k]]``): whether a value sets a bit the mode
+    never sets, and whether one is a distance beyond ``longest[k]`` that is no special code."""
+    stray = np.zeros(len(starts), np.bool_)
+    beyond = np.zeros(len(starts), np.bool_)
+    for k in range(len(starts)):
+        for v in range(starts[k], stops[k]):
+            word = np.int64(raw[v])
+            distance = word & mask
+            if word & stray_bits:
+                stray[k] = True
+            if distance > longest[k] and not coded_gap[min(int(mask - distance), 9)]:
+                beyond[k] = True
+    return stray, beyond
+
+
+def scan_rules(
+    batch: ScanBatch, rows: np.ndarray, limits: ScanLimits, unit_m: np.ndarray | None = None
+) -> ScanRules:
+    """:class:`ScanRules` of the well-formed telegrams ``rows`` of ``batch`` (§6).
+
+    ``unit_m`` overrides the unit the count words give (a :class:`Scan` built by hand).
+    """
+    mode = batch.measuring_mode
+    mask, shift = DISTANCE_MASK[mode], FLAG_SHIFT[mode]
+    word = batch.count_word[rows]
+    units = np.where(word >> _UNIT_SHIFT == 1, 0.001, 0.01) if unit_m is None else unit_m
+    starts, stops = batch.bounds[rows], batch.bounds[rows + 1]
+    max_m = MODE_MAX_RANGE_M[mode] if limits.unit_mm else CM_MAX_RANGE_M
+    distinct, which = np.unique(units, return_inverse=True)  # two at most: mm and cm
+    longest = np.array(
+        [min(mask - 9, math.floor(max_m * RANGE_MARGIN / float(u) + 1e-9)) for u in distinct],
+        np.int64,
+    )[which.reshape(-1)]
+    stray, beyond = _value_rules(batch.raw, starts, stops, mask,
+                                 0xFFFF & ~(mask | (0xFFFF >> shift << shift)), longest,
+                                 _CODED_GAP)  # fmt: skip
+    partial = word & 0x2000 != 0
+    first = np.where(
+        (stops - starts != limits.count)
+        | partial
+        | (word & ~(_COUNT_BITS | 3 << _UNIT_SHIFT) != 0),
+        _COUNT,
+        0,
+    )
+    then = np.select(
+        [(units == 0.001) != limits.unit_mm, stray, beyond, batch.status[rows] & 0x07 > 4],
+        [_UNIT, _FLAGS, _RANGE, _STATUS],
+        0,
+    )
+    return ScanRules(first, then, batch.scan_index[rows] >= 0)
+
+
+def _batch_of(scan: Scan) -> ScanBatch:
+    """One :class:`Scan` as a batch of one, for the rules."""
+    count_word = scan.count_word
+    if count_word is None:  # built by hand: no stray bits, the fields say the rest
+        count_word = (len(scan.raw) & _COUNT_BITS) | (0x2000 if scan.partial else 0)
+    return ScanBatch(
+        errors=np.zeros(1, np.int8),
+        count_word=np.array([count_word], np.int64),
+        bounds=np.array([0, len(scan.raw)], np.int64),
+        scan_index=np.array([-1 if scan.scan_index is None else scan.scan_index], np.int64),
+        telegram_index=np.array(
+            [-1 if scan.telegram_index is None else scan.telegram_index], np.int64
+        ),
+        status=np.array([scan.status], np.int64),
+        raw=np.asarray(scan.raw, np.uint16),
+        ranges_m=scan.ranges_m,
+        flags=scan.flags,
+        code=scan.code,
+        measuring_mode=scan.measuring_mode,
+    )
+
+
 def implausibility(
     scan: Scan, limits: ScanLimits, realtime_indices: bool | None = None
 ) -> Implausible | None:
@@ -135,39 +238,149 @@ def implausibility(
 
     ``realtime_indices`` overrides ``limits.realtime_indices`` (a stream's learnt choice).
     """
-    if len(scan.raw) != limits.count or scan.partial:
-        return Implausible.COUNT
-    if scan.count_word is not None and scan.count_word & ~(_COUNT_BITS | 3 << _UNIT_SHIFT):
-        return Implausible.COUNT
+    rules = scan_rules(_batch_of(scan), np.zeros(1, np.int64), limits, np.array([scan.unit_m]))
+    first = int(rules.first[0])
+    if scan.partial and not first:
+        first = _COUNT
     indices = limits.realtime_indices if realtime_indices is None else realtime_indices
-    if indices is not None and indices != (scan.scan_index is not None):
-        return Implausible.LENGTH
-    if (scan.unit_m == 0.001) != limits.unit_mm:
-        return Implausible.UNIT
-    mask = DISTANCE_MASK[scan.measuring_mode]
-    shift = FLAG_SHIFT[scan.measuring_mode]
-    raw = scan.raw.astype(np.int64)
-    if np.any(raw & ~(mask | (0xFFFF >> shift << shift))):
-        return Implausible.FLAGS
-    max_m = MODE_MAX_RANGE_M[scan.measuring_mode] if limits.unit_mm else CM_MAX_RANGE_M
-    longest = min(mask - 9, math.floor(max_m * RANGE_MARGIN / scan.unit_m + 1e-9))
-    gap = mask - (raw & mask)
-    coded = np.isin(gap, _DOCUMENTED_GAPS)
-    if np.any(~coded & ((raw & mask) > longest)):
-        return Implausible.RANGE
-    if scan.status & 0x07 > 4:
-        return Implausible.STATUS
-    return None
+    if not first and indices is not None and indices != (scan.scan_index is not None):
+        first = _LENGTH
+    return _REASONS[first or int(rules.then[0])]
 
 
-@dataclass(frozen=True)
-class _Mark:
-    """A scan's place in the sequence: its turn count since the anchor epoch began."""
+# The sequence state of a ScanCheck, in arrays the kernel updates in place. Marks (rows: the
+# anchor, the candidate, the anchor before a telegram counter restart) hold a scan's turn count
+# since the epoch began, its indices and host stamp; ``_SET`` says whether the mark exists.
+_ANCHOR, _CANDIDATE, _FORMER = 0, 1, 2
+_TURN, _SCAN, _TELEGRAM, _STAMP, _STAMPED, _SET = range(6)
+# The integer state: the index bytes (-1 not known yet, 0 without, 1 with), the arrivals seen
+# in this epoch (stamp − turn·T, the last ``window`` of them kept in a ring).
+_INDICES, _ARRIVALS = 0, 1
 
-    turn: int
-    scan_index: int
-    telegram_index: int
-    stamp_s: float | None
+
+@njit(cache=True)
+def _mark(marks: np.ndarray, row: int, turn: int, scan: np.ndarray, stamp: float) -> None:
+    marks[row, _TURN] = turn  # pragma: no cover - numba
+    marks[row, _SCAN] = scan[3]
+    marks[row, _TELEGRAM] = scan[4]
+    marks[row, _STAMP] = stamp
+    marks[row, _STAMPED] = scan[5]
+    marks[row, _SET] = 1.0
+
+
+@njit(cache=True)
+def _follows(  # pragma: no cover - numba
+    marks: np.ndarray, row: int, scan: np.ndarray, stamp: float, earliest: float, timed: bool,
+    spacing: np.ndarray,
+) -> int:  # fmt: skip
+    """The scan's turn count if it can follow mark ``row``, else -1 (ScanCheck._follows)."""
+    turns_per, early_s, late_s = int(spacing[0]), spacing[1], spacing[2]
+    before_turn = int(marks[row, _TURN])
+    telegrams = (scan[4] - int(marks[row, _TELEGRAM])) % 256
+    if scan[4] == 0:
+        # A telegram counter that starts again from 0 needs one interval at least (the
+        # simulator restarts it with every chunk of scans it writes to a capture).
+        telegrams = 1
+    if telegrams == 0:
+        return -1  # the same telegram index twice
+    fewest = turns_per * telegrams  # a telegram leaves at most every K turns (§8)
+    step = (scan[3] - int(marks[row, _SCAN])) % 256
+    if scan[5] == 0 or marks[row, _STAMPED] == 0.0 or not timed:
+        # No host clock: allow up to one more lost scan per telegram (§11).
+        wraps = max(0, math.ceil((fewest - step) / 256))
+        turns = step + 256 * wraps
+        return before_turn + turns if turns <= (turns_per + 1) * telegrams else -1
+    # Unwrap the turn counter: the fewest turns that the telegram index needs and that have the
+    # scan arrive at most late_s after the earliest arrival.
+    lower = (stamp - earliest - late_s) / TURN_S - before_turn
+    if not lower > fewest:
+        lower = fewest
+    turns = step + 256 * max(0, math.ceil((lower - step) / 256))
+    arrival = stamp - (before_turn + turns) * TURN_S
+    if arrival < earliest - early_s:
+        return -1  # measured later than it arrived: the counter ran ahead
+    return before_turn + turns
+
+
+@njit(cache=True)
+def _arrive(state: np.ndarray, arrivals: np.ndarray, value: float) -> None:
+    arrivals[state[_ARRIVALS] % len(arrivals)] = value  # pragma: no cover - numba
+    state[_ARRIVALS] += 1
+
+
+@njit(cache=True)
+def _start(  # pragma: no cover - numba
+    marks: np.ndarray, state: np.ndarray, arrivals: np.ndarray, scan: np.ndarray, stamp: float
+) -> None:
+    _mark(marks, _ANCHOR, 0, scan, stamp)
+    marks[_CANDIDATE, _SET] = 0.0
+    marks[_FORMER, _SET] = 0.0
+    state[_ARRIVALS] = 0
+    if scan[5]:
+        _arrive(state, arrivals, stamp)
+
+
+@njit(cache=True)
+def _sequence(  # pragma: no cover - numba
+    marks: np.ndarray, state: np.ndarray, arrivals: np.ndarray, scan: np.ndarray, stamp: float,
+    spacing: np.ndarray,
+) -> int:  # fmt: skip
+    if marks[_ANCHOR, _SET] == 0.0:
+        _start(marks, state, arrivals, scan, stamp)
+        return 0
+    kept = min(state[_ARRIVALS], len(arrivals))
+    timed = kept > 0
+    earliest = arrivals[:kept].min() if timed else 0.0
+    before = _ANCHOR
+    turn = _follows(marks, before, scan, stamp, earliest, timed, spacing)
+    if turn < 0 and marks[_FORMER, _SET] != 0.0:
+        before = _FORMER  # the telegram counter had not restarted after all
+        turn = _follows(marks, before, scan, stamp, earliest, timed, spacing)
+    if turn >= 0:
+        if scan[4] == 0 and marks[before, _TELEGRAM] != 255:
+            marks[_FORMER] = marks[before]
+        else:
+            marks[_FORMER, _SET] = 0.0
+        _mark(marks, _ANCHOR, turn, scan, stamp)
+        marks[_CANDIDATE, _SET] = 0.0
+        if scan[5]:
+            _arrive(state, arrivals, stamp - turn * TURN_S)
+        return 0
+    if marks[_CANDIDATE, _SET] != 0.0:
+        timed = marks[_CANDIDATE, _STAMPED] != 0.0
+        earliest = marks[_CANDIDATE, _STAMP]
+        if _follows(marks, _CANDIDATE, scan, stamp, earliest, timed, spacing) >= 0:
+            _start(marks, state, arrivals, scan, stamp)
+            return 0
+    _mark(marks, _CANDIDATE, 0, scan, stamp)
+    return _SEQUENCE
+
+
+@njit(cache=True)
+def _check_scans(  # pragma: no cover - numba
+    scans: np.ndarray, stamps: np.ndarray, marks: np.ndarray, state: np.ndarray,
+    arrivals: np.ndarray, spacing: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """ScanCheck.check of each scan in turn: its reason code (0: accepted).
+
+    ``scans`` (n, 7) int64: first rule broken before the index-bytes rule, first one after
+    it, has index bytes, scan index, telegram index, has a host stamp, and whether both indices
+    are there (the sequence is checked); ``stamps`` (n,) the host stamps; ``spacing`` the
+    telegram spacing: [turns per telegram, early_s, late_s].
+    """
+    reasons = np.zeros(len(scans), np.int8)
+    for k in range(len(scans)):
+        scan = scans[k]
+        reason = scan[0]
+        if reason == 0:
+            learnt = state[_INDICES]
+            reason = _LENGTH if learnt >= 0 and learnt != scan[2] else scan[1]
+        if reason == 0 and scan[6]:
+            reason = _sequence(marks, state, arrivals, scan, stamps[k], spacing)
+        if reason == 0 and state[_INDICES] < 0:
+            state[_INDICES] = scan[2]
+        reasons[k] = reason
+    return reasons
 
 
 class ScanCheck:
@@ -179,104 +392,70 @@ class ScanCheck:
     measured earlier than the host clock allows, relative to the earliest arrival seen in the
     last ``window`` scans, is rejected. Two consecutive rejected scans that agree with each
     other start the sequence anew (the sensor was reset or the stream restarted).
-    ``rejected`` counts the rejections by reason.
+    ``rejected`` counts the rejections by reason. :meth:`check_batch` judges many scans in one
+    call, exactly as :meth:`check` one after the other.
     """
 
     def __init__(self, limits: ScanLimits, window: int = 64) -> None:
         self.limits = limits
         self.accepted = 0
         self.rejected: dict[str, int] = {}
-        self._indices = limits.realtime_indices
-        self._turns = limits.turns_per_telegram
-        self._anchor: _Mark | None = None
-        self._candidate: _Mark | None = None
-        self._former: _Mark | None = None  # the anchor before a telegram counter restart
-        self._arrivals: deque[float] = deque(maxlen=window)  # stamp − turn·T of accepted scans
+        indices = limits.realtime_indices
+        self._state = np.array([-1 if indices is None else int(indices), 0], np.int64)
+        self._marks = np.zeros((3, 6))
+        self._arrivals = np.zeros(window)
+        self._spacing = np.array([limits.turns_per_telegram, limits.early_s, limits.late_s])
 
     def check(self, scan: Scan) -> Implausible | None:
         """Why ``scan`` is implausible after the scans before it, or None (it is accepted)."""
-        reason = implausibility(scan, self.limits, self._indices)
-        if reason is None and scan.scan_index is not None and scan.telegram_index is not None:
-            reason = self._sequence(scan)
-        if reason is None:
-            self.accepted += 1
-            if self._indices is None:
-                self._indices = scan.scan_index is not None
-        else:
-            self.rejected[reason.value] = self.rejected.get(reason.value, 0) + 1
-        return reason
+        batch = _batch_of(scan)
+        rows = np.zeros(1, np.int64)
+        rules = scan_rules(batch, rows, self.limits, np.array([scan.unit_m]))
+        if scan.partial and not rules.first[0]:
+            rules.first[0] = _COUNT
+        sequenced = scan.scan_index is not None and scan.telegram_index is not None
+        stamp = np.array([math.nan if scan.stamp_s is None else scan.stamp_s])
+        reasons = self._judge(rules, batch, rows, stamp, np.array([scan.stamp_s is not None]),
+                              np.array([sequenced]))  # fmt: skip
+        return _REASONS[int(reasons[0])]
+
+    def check_batch(
+        self, batch: ScanBatch, rows: np.ndarray, stamps_s: np.ndarray, stamped: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`check` of the well-formed telegrams ``rows`` of ``batch`` in order, received
+        at ``stamps_s`` (where ``stamped``); (n,) bool: accepted."""
+        rules = scan_rules(batch, rows, self.limits)
+        reasons = self._judge(rules, batch, rows, stamps_s, stamped, rules.indexed)
+        return np.asarray(reasons == 0)
+
+    def _judge(
+        self, rules: ScanRules, batch: ScanBatch, rows: np.ndarray, stamps_s: np.ndarray,
+        stamped: np.ndarray, sequenced: np.ndarray,
+    ) -> np.ndarray:  # fmt: skip
+        scans = np.column_stack([
+            rules.first, rules.then, rules.indexed, batch.scan_index[rows],
+            batch.telegram_index[rows], stamped, sequenced,
+        ]).astype(np.int64)  # fmt: skip
+        reasons = _check_scans(scans, np.asarray(stamps_s, np.float64), self._marks,
+                               self._state, self._arrivals, self._spacing)  # fmt: skip
+        self.accepted += int(np.count_nonzero(reasons == 0))
+        found, first, counts = np.unique(reasons, return_index=True, return_counts=True)
+        for k in np.argsort(first):
+            if found[k]:
+                name = str(_REASONS[int(found[k])])
+                self.rejected[name] = self.rejected.get(name, 0) + int(counts[k])
+        return reasons
 
     def copy(self) -> ScanCheck:
         """An independent copy: what it is fed next does not change this one."""
-        twin = ScanCheck(self.limits, self._arrivals.maxlen or 64)
-        twin.__dict__.update(self.__dict__)
+        twin = ScanCheck(self.limits, len(self._arrivals))
+        twin.accepted = self.accepted
         twin.rejected = dict(self.rejected)
-        twin._arrivals = deque(self._arrivals, maxlen=self._arrivals.maxlen)
+        twin._state = self._state.copy()
+        twin._marks = self._marks.copy()
+        twin._arrivals = self._arrivals.copy()
         return twin
 
     @property
     def rejected_total(self) -> int:
         return sum(self.rejected.values())
-
-    def _start(self, scan: Scan) -> None:
-        self._anchor = _Mark(0, int(scan.scan_index or 0), int(scan.telegram_index or 0),
-                             scan.stamp_s)  # fmt: skip
-        self._candidate = self._former = None
-        self._arrivals.clear()
-        if scan.stamp_s is not None:
-            self._arrivals.append(scan.stamp_s)
-
-    def _sequence(self, scan: Scan) -> Implausible | None:
-        if self._anchor is None:
-            self._start(scan)
-            return None
-        earliest = min(self._arrivals) if self._arrivals else None
-        before = self._anchor
-        turn = self._follows(before, scan, earliest)
-        if turn is None and self._former is not None:
-            before = self._former  # the telegram counter had not restarted after all
-            turn = self._follows(before, scan, earliest)
-        if turn is not None:
-            restarted = scan.telegram_index == 0 and before.telegram_index != 255
-            self._former = before if restarted else None
-            self._anchor = _Mark(turn, int(scan.scan_index or 0), int(scan.telegram_index or 0),
-                                 scan.stamp_s)  # fmt: skip
-            self._candidate = None
-            if scan.stamp_s is not None:
-                self._arrivals.append(scan.stamp_s - turn * TURN_S)
-            return None
-        candidate = self._candidate
-        if candidate is not None and self._follows(candidate, scan, candidate.stamp_s) is not None:
-            self._start(scan)
-            return None
-        self._candidate = _Mark(0, int(scan.scan_index or 0), int(scan.telegram_index or 0),
-                                scan.stamp_s)  # fmt: skip
-        return Implausible.SEQUENCE
-
-    def _follows(self, before: _Mark, scan: Scan, earliest_s: float | None) -> int | None:
-        """The scan's turn count if it can follow ``before``, else None.
-
-        ``earliest_s`` is the earliest arrival (stamp − turn·T) seen so far in this epoch.
-        """
-        telegrams = (int(scan.telegram_index or 0) - before.telegram_index) % 256
-        if scan.telegram_index == 0:
-            # A telegram counter that starts again from 0 needs one interval at least (the
-            # simulator restarts it with every chunk of scans it writes to a capture).
-            telegrams = 1
-        if telegrams == 0:
-            return None  # the same telegram index twice
-        fewest = self._turns * telegrams  # a telegram leaves at most every K turns (§8)
-        step = (int(scan.scan_index or 0) - before.scan_index) % 256
-        if scan.stamp_s is None or before.stamp_s is None or earliest_s is None:
-            # No host clock: allow up to one more lost scan per telegram (§11).
-            wraps = max(0, math.ceil((fewest - step) / 256))
-            turns = step + 256 * wraps
-            return before.turn + turns if turns <= (self._turns + 1) * telegrams else None
-        # Unwrap the turn counter: the fewest turns that the telegram index needs and that have
-        # the scan arrive at most late_s after the earliest arrival.
-        lower = max(fewest, (scan.stamp_s - earliest_s - self.limits.late_s) / TURN_S - before.turn)
-        turns = step + 256 * max(0, math.ceil((lower - step) / 256))
-        arrival = scan.stamp_s - (before.turn + turns) * TURN_S
-        if arrival < earliest_s - self.limits.early_s:
-            return None  # measured later than it arrived: the counter ran ahead
-        return before.turn + turns

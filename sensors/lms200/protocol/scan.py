@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from typing import Final
 
 import numpy as np
+from numba import njit
 
 from sensors.lms200.protocol.stream import Telegram
 from sensors.lms200.protocol.telegram import (
@@ -29,9 +30,12 @@ from sensors.lms200.protocol.telegram import (
 __all__ = [
     "VARIANT_BY_COUNT",
     "Scan",
+    "ScanBatch",
     "SpecialCode",
     "decode_scan",
+    "decode_scans",
     "encode_scan",
+    "scan_bearings",
     "scan_interval_s",
 ]
 
@@ -99,12 +103,6 @@ class Scan:
         return replace(self, stamp_s=stamp_s)
 
 
-def _bearings(count: int, partial: bool, offset_deg: float) -> np.ndarray:
-    if not partial and count not in VARIANT_BY_COUNT:
-        raise ProtocolError(f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}")
-    return _shared_bearings(count, partial, offset_deg)
-
-
 @functools.lru_cache(maxsize=64)
 def _shared_bearings(count: int, partial: bool, offset_deg: float) -> np.ndarray:
     """One read-only array per variant, shared by every scan of it (a mission decodes tens of
@@ -118,65 +116,220 @@ def _shared_bearings(count: int, partial: bool, offset_deg: float) -> np.ndarray
     return bearings
 
 
+def scan_bearings(count: int, partial: bool, offset_deg: float) -> np.ndarray:
+    """The bearings (rad, scanner frame) of a scan's samples; read-only, shared per variant."""
+    if not partial and count not in VARIANT_BY_COUNT:
+        raise ProtocolError(f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}")
+    return _shared_bearings(count, partial, offset_deg)
+
+
+# Why a B0 telegram is malformed, in the order decode_scan checks (0: it is not).
+_SHORT, _UNIT, _SIZE, _COUNT = 1, 2, 3, 4
+_COMPLETE = np.zeros(1024, dtype=np.bool_)
+_COMPLETE[list(VARIANT_BY_COUNT)] = True
+# Special code by gap (mask − raw); row 9 stands for every gap above 8 (a distance).
+_CODE_BY_GAP = np.full(10, SpecialCode.UNDOCUMENTED, dtype=np.uint8)
+_CODE_BY_GAP[9] = SpecialCode.VALID
+for _gap, _code in _SPECIAL_BY_GAP.items():
+    _CODE_BY_GAP[_gap] = _code
+
+
+@njit(cache=True)
+def _split_scans(  # pragma: no cover - numba
+    buf: np.ndarray, data: np.ndarray, complete: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The count words, real-time indices and raw values of many B0 telegrams at once.
+
+    ``data`` (n, 2) holds where each telegram's data (after the reply code, before the status
+    byte) starts in ``buf`` and its size. Returns ``errors`` (n,) int8 (0 or why the telegram
+    is malformed), ``words`` (n, 4) int64: count word, first value row, scan index and
+    telegram index (-1 without), and ``raw`` (V,) uint16: the values of the well-formed ones,
+    concatenated in telegram order.
+    """
+    n = len(data)
+    errors = np.zeros(n, np.int8)
+    words = np.full((n, 4), -1, np.int64)
+    total = 0
+    for k in range(n):
+        start, size = data[k, 0], data[k, 1]
+        if size < 2:
+            errors[k] = _SHORT
+            continue
+        word = buf[start] | (np.int64(buf[start + 1]) << 8)
+        count = word & 0x03FF
+        partial = (word & 0x2000) != 0
+        extra = size - 2 - 2 * count
+        words[k, 0] = word
+        if word >> 14 > 1:
+            errors[k] = _UNIT
+        elif extra != 0 and extra != 2:
+            errors[k] = _SIZE
+        elif not partial and not complete[count]:
+            errors[k] = _COUNT
+        else:
+            words[k, 1] = total
+            total += count
+            if extra == 2:
+                words[k, 2] = buf[start + 2 + 2 * count]
+                words[k, 3] = buf[start + 3 + 2 * count]
+    raw = np.empty(total, np.uint16)
+    for k in range(n):
+        if errors[k] == 0:
+            start, first = data[k, 0] + 2, words[k, 1]
+            for j in range(words[k, 0] & 0x03FF):
+                raw[first + j] = buf[start + 2 * j] | (np.uint16(buf[start + 2 * j + 1]) << 8)
+    return errors, words, raw
+
+
+@njit(cache=True)
+def _decode_values(  # pragma: no cover - numba
+    raw: np.ndarray, bounds: np.ndarray, unit_m: np.ndarray, mask: int, shift: int,
+    code_by_gap: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """Ranges (m, NaN for special codes), flag bits and special codes of every value (§6.2,
+    §6.4); scan ``k`` is rows ``bounds[k]:bounds[k + 1]``, in the unit ``unit_m[k]``."""
+    ranges = np.empty(len(raw), np.float64)
+    flags = np.empty(len(raw), np.uint8)
+    code = np.empty(len(raw), np.uint8)
+    for k in range(len(unit_m)):
+        unit = unit_m[k]
+        for v in range(bounds[k], bounds[k + 1]):
+            word = np.int64(raw[v])
+            distance = word & mask
+            gap = mask - distance
+            code[v] = code_by_gap[min(int(gap), 9)]
+            ranges[v] = np.nan if gap <= 8 else distance * unit
+            flags[v] = np.uint8(word >> shift)
+    return ranges, flags, code
+
+
+@dataclass(frozen=True)
+class ScanBatch:
+    """Measured-value telegrams decoded together (:func:`decode_scans`).
+
+    Per telegram ``k``: ``errors[k]`` (0 when it is well formed), its count word, real-time
+    indices (-1 without) and status; the values of well-formed telegram ``k`` are rows
+    ``bounds[k]:bounds[k + 1]`` of the per-value arrays (empty for a malformed one).
+    """
+
+    errors: np.ndarray  # (n,) int8
+    count_word: np.ndarray  # (n,) int64
+    bounds: np.ndarray  # (n + 1,) int64
+    scan_index: np.ndarray  # (n,) int64
+    telegram_index: np.ndarray  # (n,) int64
+    status: np.ndarray  # (n,) int64
+    raw: np.ndarray  # (V,) uint16
+    ranges_m: np.ndarray  # (V,) float64, NaN for special codes
+    flags: np.ndarray  # (V,) uint8
+    code: np.ndarray  # (V,) uint8 SpecialCode
+    measuring_mode: int
+
+    @property
+    def unit_mm(self) -> np.ndarray:
+        """(n,) bool: the values are in millimetres (else centimetres)."""
+        return np.asarray(self.count_word >> 14 == 1)
+
+    def scans(self, rows: np.ndarray, stamps_s: list[float | None]) -> list[Scan]:
+        """The well-formed telegrams ``rows`` as :class:`Scan` (views of the batch's arrays)."""
+        rows = np.asarray(rows, np.int64)
+        words = self.count_word[rows].tolist()
+        starts = self.bounds[rows].tolist()
+        stops = self.bounds[rows + 1].tolist()
+        scan_index = self.scan_index[rows].tolist()
+        telegram_index = self.telegram_index[rows].tolist()
+        status = self.status[rows].tolist()
+        ranges, flags, code, raw = self.ranges_m, self.flags, self.code, self.raw
+        mode = self.measuring_mode
+        scans = []
+        for k, word in enumerate(words):
+            a, b = starts[k], stops[k]
+            partial = bool(word & 0x2000)
+            offset_deg = 0.25 * ((word >> 11) & 0x03) if partial else 0.0
+            indexed = scan_index[k] >= 0
+            scans.append(
+                Scan(
+                    ranges[a:b],
+                    _shared_bearings(b - a, partial, offset_deg),
+                    flags[a:b],
+                    code[a:b],
+                    0.001 if word >> 14 == 1 else 0.01,
+                    partial,
+                    offset_deg,
+                    scan_index[k] if indexed else None,
+                    telegram_index[k] if indexed else None,
+                    status[k],
+                    stamps_s[k],
+                    mode,
+                    raw[a:b],
+                    word,
+                )
+            )
+        return scans
+
+
+def decode_scans(
+    buf: np.ndarray, data: np.ndarray, status: np.ndarray, measuring_mode: int
+) -> ScanBatch:
+    """Decode many ``B0`` replies at once (§6): ranges, flags and special codes of every value.
+
+    ``buf`` (uint8) holds the telegrams; ``data`` (n, 2) the start and size of each one's data
+    (after the reply code, before the status byte); ``status`` (n,) their status bytes. The
+    values are those :func:`decode_scan` gives; a malformed telegram is marked in ``errors``.
+    """
+    if measuring_mode not in DISTANCE_MASK:
+        raise ProtocolError(f"unknown measuring mode {measuring_mode}")
+    errors, words, raw = _split_scans(buf, np.asarray(data, np.int64).reshape(-1, 2), _COMPLETE)
+    count = np.where(errors == 0, words[:, 0] & 0x03FF, 0)
+    bounds = np.zeros(len(errors) + 1, np.int64)
+    np.cumsum(count, out=bounds[1:])
+    unit = np.where(words[:, 0] >> 14 == 1, 0.001, 0.01)
+    ranges, flags, code = _decode_values(
+        raw, bounds, unit, DISTANCE_MASK[measuring_mode], FLAG_SHIFT[measuring_mode], _CODE_BY_GAP
+    )
+    return ScanBatch(
+        errors=errors,
+        count_word=words[:, 0],
+        bounds=bounds,
+        scan_index=words[:, 2],
+        telegram_index=words[:, 3],
+        status=np.asarray(status, np.int64),
+        raw=raw,
+        ranges_m=ranges,
+        flags=flags,
+        code=code,
+        measuring_mode=measuring_mode,
+    )
+
+
+def _malformed(error: int, data: bytes) -> str:
+    count_word = data[0] | data[1] << 8 if len(data) >= 2 else 0
+    count = count_word & 0x03FF
+    return {
+        _SHORT: f"B0 reply too short: {len(data)} data bytes",
+        _UNIT: f"B0 reply has a reserved unit code {count_word >> 14}",
+        _SIZE: f"B0 reply announces {count} values but carries {len(data) - 2} bytes of them",
+        _COUNT: f"a complete scan has 101, 201, 401, 181 or 361 values, got {count}",
+    }[error]
+
+
 def decode_scan(telegram: Telegram, measuring_mode: int = 1) -> Scan:
     """Decode a ``B0`` measured-values reply (§6); raises ProtocolError if it is malformed.
 
     ``measuring_mode`` (block D of the configuration) says which bits are distance and which
-    are flags; the sensor does not send it (§6.2), the driver knows it from 74/B1.
+    are flags; the sensor does not send it (§6.2), the driver knows it from 74/B1. One telegram
+    of :func:`decode_scans`.
     """
     if telegram.code != 0xB0:
         raise ProtocolError(f"not a measured-values reply: code {telegram.code:#04x}")
-    if measuring_mode not in DISTANCE_MASK:
-        raise ProtocolError(f"unknown measuring mode {measuring_mode}")
     data = telegram.data
-    if len(data) < 2:
-        raise ProtocolError(f"B0 reply too short: {len(data)} data bytes")
-    (count_word,) = struct.unpack_from("<H", data, 0)
-    count = count_word & 0x03FF
-    partial = bool(count_word & 0x2000)
-    unit_bits = count_word >> 14
-    if unit_bits > 1:
-        raise ProtocolError(f"B0 reply has a reserved unit code {unit_bits}")
-    unit_m = 0.001 if unit_bits == 1 else 0.01
-    extra = len(data) - 2 - 2 * count
-    if extra not in (0, 2):
-        raise ProtocolError(
-            f"B0 reply announces {count} values but carries {len(data) - 2} bytes of them"
-        )
-    offset_deg = 0.25 * ((count_word >> 11) & 0x03) if partial else 0.0
-    bearings = _bearings(count, partial, offset_deg)
-    raw = np.frombuffer(data, dtype="<u2", count=count, offset=2).astype(np.uint16)
-    mask = DISTANCE_MASK[measuring_mode]
-    distance = (raw & mask).astype(np.int64)
-    flags = (raw.astype(np.uint32) >> FLAG_SHIFT[measuring_mode]).astype(np.uint8)
-    gap = mask - distance
-    code = np.zeros(count, dtype=np.uint8)
-    special = gap <= 8
-    if special.any():
-        lookup = np.full(9, SpecialCode.UNDOCUMENTED, dtype=np.uint8)
-        for g, c in _SPECIAL_BY_GAP.items():
-            lookup[g] = c
-        code[special] = lookup[gap[special]]
-    ranges = np.where(special, np.nan, distance * unit_m)
-    scan_index = telegram_index = None
-    if extra == 2:
-        scan_index, telegram_index = data[2 + 2 * count], data[3 + 2 * count]
-    return Scan(
-        ranges_m=ranges,
-        bearing_rad=bearings,
-        flags=flags,
-        code=code,
-        unit_m=unit_m,
-        partial=partial,
-        partial_offset_deg=offset_deg,
-        scan_index=scan_index,
-        telegram_index=telegram_index,
-        status=telegram.status if telegram.status is not None else 0,
-        stamp_s=telegram.stamp_s,
-        measuring_mode=measuring_mode,
-        raw=raw,
-        count_word=count_word,
-    )
+    status = telegram.status if telegram.status is not None else 0
+    batch = decode_scans(
+        np.frombuffer(data, dtype=np.uint8), np.array([[0, len(data)]]), np.array([status]),
+        measuring_mode,
+    )  # fmt: skip
+    if batch.errors[0]:
+        raise ProtocolError(_malformed(int(batch.errors[0]), data))
+    return batch.scans(np.zeros(1, np.int64), [telegram.stamp_s])[0]
 
 
 def encode_scan(

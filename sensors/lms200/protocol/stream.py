@@ -23,6 +23,7 @@ __all__ = [
     "Rejected",
     "StreamParser",
     "Telegram",
+    "scan_chunks",
 ]
 
 _KIND_FRAME, _KIND_ACK, _KIND_NAK, _KIND_REJECTED = 0, 1, 2, 3
@@ -118,6 +119,51 @@ def _scan_stream(  # pragma: no cover - numba
         count += 1
         p += size
     return count, kinds, offsets, lengths, p, skipped, failures
+
+
+@njit(cache=True)
+def _grown_rows(rows: np.ndarray, used: int) -> np.ndarray:  # pragma: no cover - numba
+    bigger = np.empty((2 * len(rows), rows.shape[1]), rows.dtype)
+    bigger[:used] = rows[:used]
+    return bigger
+
+
+@njit(cache=True)
+def scan_chunks(  # pragma: no cover - numba
+    buf: np.ndarray, ends: np.ndarray, direction: int, max_len: int, final: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """What :meth:`StreamParser.feed` finds, chunk after chunk, in one call (no events built).
+
+    ``buf`` holds the bytes the parser held followed by the new chunks; chunk ``c`` ends at
+    ``ends[c]`` (non-decreasing, at most ``len(buf)``). Each chunk is parsed exactly as ``feed``
+    parses it, the bytes still held plus the chunk, with ``final`` as ``close`` sets it. Returns
+    ``frames`` (F, 3) int64: offset in ``buf``, length and chunk of each checksum-valid frame,
+    and ``counts`` [bytes consumed, skipped, checksum failures, ACKs, NAKs].
+    """
+    frames = np.empty((max(16, len(buf) // 64), 3), np.int64)
+    found = 0
+    consumed = skipped = failures = acks = naks = 0
+    for c in range(len(ends)):
+        count, kinds, offsets, lengths, used, skip, fail = _scan_stream(
+            buf[consumed : ends[c]], direction, max_len, final, False
+        )
+        for k in range(count):
+            if kinds[k] == _KIND_FRAME:
+                if found == len(frames):
+                    frames = _grown_rows(frames, found)
+                frames[found, 0] = consumed + offsets[k]
+                frames[found, 1] = lengths[k]
+                frames[found, 2] = c
+                found += 1
+            elif kinds[k] == _KIND_ACK:
+                acks += 1
+            else:
+                naks += 1
+        consumed += used
+        skipped += skip
+        failures += fail
+    counts = np.array([consumed, skipped, failures, acks, naks], np.int64)
+    return frames[:found], counts
 
 
 @dataclass(frozen=True)

@@ -136,6 +136,25 @@ def test_the_fft_search_answers_where_the_bounds_prune_too_little(
     assert not best.pruned
 
 
+def test_the_cap_is_checked_before_the_blocks_are_collected(
+    building: tuple[Band, Scene],
+) -> None:
+    """A small noisy view leaves far more blocks reaching the first best score than the budget
+    could expand: the FFT answers after the top block alone, with the same argmax as the
+    bounds would find uncapped."""
+    global_, scene = building
+    rng = np.random.default_rng(2)
+    local = local_view(scene, np.array([4.1, 3.3, 0.7]), 2.0, 0.1, rng, noise=0.1,
+                       drop_fraction=0.2, flip_fraction=0.02)  # fmt: skip
+    capped = assert_exhaustive_argmax(local, global_, fft_share=0.5)  # lattice_best's default
+    assert not capped.pruned
+    assert capped.blocks_expanded == 1
+    uncapped = assert_exhaustive_argmax(local, global_)
+    assert uncapped.pruned
+    assert uncapped.blocks_expanded > 1000
+    assert uncapped.index == capped.index
+
+
 # -- the bounds and the exact scores -----------------------------------------------------------
 
 BOUND_CASES = [

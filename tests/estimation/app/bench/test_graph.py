@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from estimation.app.bench.graph import leapfrog_5000, run_g2o_case
+from estimation.app.bench.graph import leapfrog_5000, pose_difference, run_g2o_case
 from estimation.app.cli.main import app
 from estimation.app.resources import DATA_DIR
 from estimation.posegraph.smoother import IncrementalSmoother
+from sensors.geometry import se2
 
 INTEL = DATA_DIR / "pose_graphs_g2o" / "intel.g2o"
 
@@ -41,6 +42,7 @@ def test_intel_graph_batch_and_isam2_agree() -> None:
     assert result.batch_error < 25.0  # from 277 at the file's initial values
     assert result.isam2_error == pytest.approx(result.batch_error, rel=1e-3)
     assert result.max_difference_mm < 3.0
+    assert result.aligned_difference_mm <= result.max_difference_mm + 1e-9
     assert result.ratio > 1.0
 
 
@@ -72,3 +74,26 @@ def test_bench_graph_errors_are_one_line(tmp_path: Path, args: list[str], patter
     import re
 
     assert re.search(pattern, lines[0]), lines[0]
+
+
+def test_the_difference_is_reported_raw_and_with_the_gauge_aligned() -> None:
+    """Two estimates of one graph in gauges a known SE(2) transform apart (plus millimetres of
+    disagreement): raw, they differ by the transform; aligned, by the disagreement alone."""
+    rng = np.random.default_rng(3)
+    batch = {k: np.array([x, y, yaw]) for k, (x, y, yaw) in enumerate(
+        np.column_stack([rng.uniform(-20, 20, (60, 2)), rng.uniform(-3, 3, 60)]))}  # fmt: skip
+    T = np.array([12.0, -9.0, np.radians(1.46)])  # the other gauge: 15 m, 1.46°
+    wiggle = {k: np.array([rng.normal(0, 1e-3), rng.normal(0, 1e-3), rng.normal(0, 1e-4)])
+              for k in batch}  # fmt: skip
+    isam2 = {k: se2.compose(se2.inverse(T), p + wiggle[k]) for k, p in batch.items()}
+    d = pose_difference(batch, isam2)
+    assert d.gauge_m == pytest.approx(15.0, abs=0.01)
+    assert d.gauge_deg == pytest.approx(1.46, abs=0.01)
+    assert d.raw_mm > 15_000
+    assert d.raw_deg == pytest.approx(1.46, abs=0.05)
+    largest = max(np.hypot(*w[:2]) for w in wiggle.values()) * 1e3
+    assert d.aligned_mm < 2 * largest + 1.0
+    assert d.aligned_mm > 0.2 * largest
+    assert d.aligned_deg < 0.05
+    same = pose_difference(batch, batch)
+    assert (same.raw_mm, same.aligned_mm, same.gauge_m) == (0.0, 0.0, 0.0)
