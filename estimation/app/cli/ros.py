@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from estimation.app.cli.common import cli_errors, file_size, make_console
+from estimation.app.cli.common import cli_errors, file_size, make_console, option_config
 
 if TYPE_CHECKING:
     from estimation.app.ros.export import ExportSummary
@@ -197,6 +197,8 @@ def import_bag(
     from estimation.app.ros.importer import import_bag as run_import
     from sensors.yamlio import read_yaml_mapping
 
+    if config is not None:
+        option_config(config)  # a bad configuration is refused before the bag is read
     options = ImportOptions(
         topics=tuple(t.strip() for text in topics or [] for t in text.split(",") if t.strip()),
         overrides=read_yaml_mapping(config, ConfigError) if config is not None else None,

@@ -51,6 +51,7 @@ COMMANDS: dict[str, tuple[str, ...]] = {
         "{tmp}/nodata",
     ),
     "bench-scan": ("bench", "scan"),
+    "bench-decode": ("bench", "decode", "--telegrams", "100", "--repeats", "1"),
     "bench-search": ("bench", "search", "--repeats", "1"),
     "bench-graph": ("bench", "graph", "--case", "leapfrog_5000", "--data", "{tmp}/nodata"),
     "lms-decode": ("lms", "decode", "{tmp}/none.cap"),
@@ -69,6 +70,7 @@ COMMANDS: dict[str, tuple[str, ...]] = {
     "replay": ("replay", "{tmp}/nodataset", "--robot", "a"),
     "dataset-merge": ("dataset", "merge", "{tmp}/nothing", "--out", "{tmp}/merged"),
     "world-generate": ("world", "generate", "--seed", "1", "--out", "{tmp}/gen.yaml"),
+    "import": ("import", "{tmp}/none.mcap", "--out", "{tmp}/imported"),
 }
 
 
