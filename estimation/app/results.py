@@ -21,8 +21,8 @@ import numpy as np
 
 from estimation import __version__
 from estimation.app.config import Config, config_to_yaml
+from estimation.app.rig import cut_ceiling_band
 from estimation.posegraph.keys import key_label, pose_key
-from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import save_map
 from mapping.formats.octomap_bt import write_bt
@@ -120,12 +120,8 @@ def write_results(output: BatchOutput, config: Config) -> None:
             write_bt(work / "map.bt", output.grid)
         except MapError as exc:
             output.report["octomap"] = f"not written: {exc}"
-        band = config.bands.ceiling
         try:
-            ceiling = extract_band(
-                output.grid, band.min_m, band.max_m,
-                free_min_observed=config.bands.free_min_observed,
-            )  # fmt: skip
+            ceiling = cut_ceiling_band(output.grid, config)
             write_band_pgm(work / "ceiling.yaml", ceiling)
         except MapError as exc:
             ceiling = None
