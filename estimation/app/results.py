@@ -137,14 +137,16 @@ def write_results(output: BatchOutput, config: Config) -> None:
         )
 
 
-#: At most this many search PDFs are drawn per result (relocalizations first, then the loop
-#: closures that became factors, then the others, each in mission order).
-MAX_PDF_FIGURES = 12
+#: At most this many search PDFs are drawn per result (the relocalizations in the ceiling band
+#: first, then the loop closures that became factors, then the others, each in mission order):
+#: each takes about 0.25 s.
+MAX_PDF_FIGURES = 6
 
 
 def _pdf_figures(searches: list[SearchRecord]) -> list[tuple[str, SearchRecord]]:
-    """The search records whose PDF a result draws, with their file names."""
-    drawn = [r for r in searches if r.picture is not None]
+    """The search records whose PDF a result draws, with their file names (relocalizations in
+    the floor band, reported for comparison, are not drawn)."""
+    drawn = [r for r in searches if r.picture is not None and r.band == "ceiling"]
     order = {"relocalize": 0, "loop": 1}
     drawn.sort(key=lambda r: (order.get(r.kind, 2), not r.used, r.time_s))
     names = []
@@ -191,7 +193,9 @@ def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str,
         render_search_pdf(record.picture, np.array(record.pose), figures / name, title=title)
         pdfs.append(name)
     drawn["pdfs"] = pdfs
-    drawn["pdfs_not_drawn"] = sum(r.picture is not None for r in output.searches) - len(pdfs)
+    drawn["pdfs_not_drawn"] = len(
+        [r for r in output.searches if r.picture is not None and r.band == "ceiling"]
+    ) - len(pdfs)
     return drawn
 
 
