@@ -18,7 +18,7 @@ from mapping.errors import MapError
 from mapping.grid import OccupancyGrid
 from mapping.logodds import logodds
 
-__all__ = ["Band", "band_layers", "extract_band"]
+__all__ = ["Band", "CeilingRule", "band_layers", "extract_band", "extract_ceiling_band"]
 
 #: Cell centres this close (in cells) to a band edge count as on it (float round-off).
 _EDGE_EPS = 1e-6
@@ -137,3 +137,117 @@ def extract_band(
         lower_xy=origin[:2] + lo_ij * res,
         resolution_m=res,
     )
+
+
+@dataclass(frozen=True)
+class CeilingRule:
+    """A band that follows the ceiling it sees: under each column, ``depth_m`` of layers ending
+    ``gap_m`` below the ceiling of its neighbourhood (the highest occupied layer of the columns
+    within ``smooth_m``, their median). ``fallback_m`` is the fixed band used when no ceiling
+    was seen at all."""
+
+    depth_m: float = 0.6
+    gap_m: float = 0.1
+    smooth_m: float = 1.0
+    fallback_m: tuple[float, float] = (2.3, 2.9)
+    #: True: the fixed band ``fallback_m``, cut off ``gap_m`` below the ceiling where the
+    #: ceiling is lower than its top (and kept two layers deep), instead of following it.
+    clip: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("depth_m", "gap_m", "smooth_m"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise MapError(f"ceiling band: {name} must be a finite length >= 0, got {value!r}")
+        if self.depth_m <= 0:
+            raise MapError(f"ceiling band: depth_m must be positive, got {self.depth_m!r}")
+
+
+def _column_layers(
+    cells: np.ndarray, occupied: np.ndarray, lo_ij: np.ndarray, shape: tuple[int, int],
+    rule: CeilingRule, res: float, origin_z: float,
+) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+    """Per column of the rectangle (rows, cols): the first and last layer of its band, or None
+    when no column shows a ceiling."""
+    from scipy import ndimage
+
+    rows, cols = shape
+    ij = cells[:, :2] - lo_ij
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < cols) & (ij[:, 1] >= 0) & (ij[:, 1] < rows)
+    top = np.full((rows, cols), np.iinfo(np.int64).min, dtype=np.int64)
+    hit = inside & occupied
+    np.maximum.at(top, (ij[hit, 1], ij[hit, 0]), cells[hit, 2])
+    seen = top > np.iinfo(np.int64).min
+    if not seen.any():
+        return None
+    # Every column takes the ceiling of the nearest column that saw one, then the median of its
+    # neighbourhood: a luminaire that hid the ceiling above it, or a cupboard whose top was the
+    # highest return, does not move the band; the ceiling of a room does.
+    _, nearest = ndimage.distance_transform_edt(~seen, return_indices=True)
+    filled = top[nearest[0], nearest[1]]
+    size = 2 * max(0, round(rule.smooth_m / res / 2)) + 1
+    ceiling = ndimage.median_filter(filled, size=size, mode="nearest") if size > 1 else filled
+    last = ceiling - max(1, round(rule.gap_m / res))
+    if rule.clip:
+        fixed_first, fixed_last = band_layers(origin_z, res, *rule.fallback_m)
+        last = np.minimum(last, fixed_last)
+        return np.minimum(fixed_first, last - 1), last
+    first = last - max(1, round(rule.depth_m / res)) + 1
+    return first, last
+
+
+def extract_ceiling_band(
+    grid: OccupancyGrid,
+    rule: CeilingRule,
+    *,
+    threshold: float | None = None,
+    free_min_observed: float = 0.0,
+    lower_xy: np.ndarray | tuple[float, float] | None = None,
+    upper_xy: np.ndarray | tuple[float, float] | None = None,
+) -> Band:
+    """A band under every ceiling (see :class:`CeilingRule`): as :func:`extract_band`, but each
+    column sums its own layers, so high halls and low offices are each cut just below their
+    own ceiling structure. Falls back to the rule's fixed band when no ceiling was seen."""
+    if not 0.0 <= free_min_observed <= 1.0:
+        raise MapError(f"free_min_observed must lie in [0, 1], got {free_min_observed!r}")
+    res = grid.resolution_m
+    origin = grid.origin_m
+    cells, values = grid.cells()
+    if len(cells) == 0:
+        raise MapError("the ceiling band holds no observed cell: the grid is empty")
+    if lower_xy is None or upper_xy is None:
+        lo_ij, hi_ij = cells[:, :2].min(axis=0), cells[:, :2].max(axis=0)
+    else:
+        lo_ij = np.floor((np.asarray(lower_xy, float) - origin[:2]) / res).astype(np.int64)
+        hi_ij = np.floor((np.asarray(upper_xy, float) - origin[:2]) / res).astype(np.int64)
+        if np.any(hi_ij < lo_ij):
+            raise MapError(f"empty rectangle: lower {lower_xy}, upper {upper_xy}")
+    level = grid.params.logodds_threshold if threshold is None else float(logodds(threshold))
+    occupied = values > level
+    cols, rows = (hi_ij - lo_ij + 1).tolist()
+    layers = _column_layers(cells, occupied, lo_ij, (rows, cols), rule, res, float(origin[2]))
+    if layers is None:
+        return extract_band(grid, *rule.fallback_m, threshold=threshold,
+                            free_min_observed=free_min_observed, lower_xy=lower_xy,
+                            upper_xy=upper_xy)  # fmt: skip
+    first, last = layers
+    ij = cells[:, :2] - lo_ij
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < cols) & (ij[:, 1] >= 0) & (ij[:, 1] < rows)
+    r, c, k = ij[inside, 1], ij[inside, 0], cells[inside, 2]
+    in_band = (k >= first[r, c]) & (k <= last[r, c])
+    r, c, occ = r[in_band], c[in_band], occupied[inside][in_band]
+    counts = np.zeros((rows, cols), dtype=np.int64)
+    np.add.at(counts, (r[occ], c[occ]), 1)
+    observed = np.zeros((rows, cols), dtype=np.int64)
+    np.add.at(observed, (r, c), 1)
+    depth = (last - first + 1).astype(np.float64)
+    known = (counts > 0) | ((observed > 0) & (observed >= free_min_observed * depth))
+    band = Band(counts / depth, known, origin[:2] + lo_ij * res, res)
+    if lower_xy is not None and upper_xy is not None:
+        return band
+    if not known.any():
+        raise MapError("the ceiling band holds no observed cell")
+    rr, cc = np.nonzero(known)
+    r0, r1, c0, c1 = rr.min(), rr.max() + 1, cc.min(), cc.max() + 1
+    return Band(band.occupancy[r0:r1, c0:c1], known[r0:r1, c0:c1],
+                band.lower_xy + np.array([c0, r0]) * res, res)  # fmt: skip

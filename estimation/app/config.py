@@ -233,6 +233,17 @@ class BandsConfig(_Section):
 
     ceiling: BandConfig = BandConfig(min_m=2.3, max_m=2.9)
     floor: BandConfig = BandConfig(min_m=0.2, max_m=1.5)
+    ceiling_mode: Literal["fixed", "clip", "follow"] = Field(
+        "fixed",
+        description="fixed: the ceiling band is [ceiling.min_m, ceiling.max_m) everywhere; "
+        "clip: that band, cut off ceiling_gap_m below the ceiling seen around each column "
+        "where the ceiling is lower (at least two layers deep); follow: under every column, "
+        "ceiling_depth_m of layers ending ceiling_gap_m below the ceiling seen around it (the "
+        "fixed band where no ceiling was seen)",
+    )
+    ceiling_depth_m: float = Field(0.6, gt=0, le=5)
+    ceiling_gap_m: float = Field(0.1, ge=0, le=2)
+    ceiling_smooth_m: float = Field(1.0, ge=0, le=10)
     free_min_observed: float = Field(
         0.5, ge=0, le=1,
         description="a column without an occupied layer is free only when at least this share "

@@ -21,8 +21,8 @@ import numpy as np
 
 from estimation import __version__
 from estimation.app.config import Config, config_to_yaml
+from estimation.app.rig import cut_ceiling_band
 from estimation.posegraph.keys import key_label, pose_key
-from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import save_map
 from mapping.formats.octomap_bt import write_bt
@@ -120,12 +120,8 @@ def write_results(output: BatchOutput, config: Config) -> None:
             write_bt(work / "map.bt", output.grid)
         except MapError as exc:
             output.report["octomap"] = f"not written: {exc}"
-        band = config.bands.ceiling
         try:
-            ceiling = extract_band(
-                output.grid, band.min_m, band.max_m,
-                free_min_observed=config.bands.free_min_observed,
-            )  # fmt: skip
+            ceiling = cut_ceiling_band(output.grid, config)
             write_band_pgm(work / "ceiling.yaml", ceiling)
         except MapError as exc:
             ceiling = None
@@ -141,14 +137,16 @@ def write_results(output: BatchOutput, config: Config) -> None:
         )
 
 
-#: At most this many search PDFs are drawn per result (relocalizations first, then the loop
-#: closures that became factors, then the others, each in mission order).
-MAX_PDF_FIGURES = 12
+#: At most this many search PDFs are drawn per result (the relocalizations in the ceiling band
+#: first, then the loop closures that became factors, then the others, each in mission order):
+#: each takes about 0.25 s.
+MAX_PDF_FIGURES = 6
 
 
 def _pdf_figures(searches: list[SearchRecord]) -> list[tuple[str, SearchRecord]]:
-    """The search records whose PDF a result draws, with their file names."""
-    drawn = [r for r in searches if r.picture is not None]
+    """The search records whose PDF a result draws, with their file names (relocalizations in
+    the floor band, reported for comparison, are not drawn)."""
+    drawn = [r for r in searches if r.picture is not None and r.band == "ceiling"]
     order = {"relocalize": 0, "loop": 1}
     drawn.sort(key=lambda r: (order.get(r.kind, 2), not r.used, r.time_s))
     names = []
@@ -195,7 +193,9 @@ def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str,
         render_search_pdf(record.picture, np.array(record.pose), figures / name, title=title)
         pdfs.append(name)
     drawn["pdfs"] = pdfs
-    drawn["pdfs_not_drawn"] = sum(r.picture is not None for r in output.searches) - len(pdfs)
+    drawn["pdfs_not_drawn"] = len(
+        [r for r in output.searches if r.picture is not None and r.band == "ceiling"]
+    ) - len(pdfs)
     return drawn
 
 

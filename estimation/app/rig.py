@@ -18,7 +18,8 @@ from estimation.app.config import Config, SearchConfig
 from estimation.posegraph.graph import GraphSettings
 from estimation.search.exhaustive import SearchParams
 from estimation.search.stations import StationParams
-from mapping.grid import GridParams
+from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
+from mapping.grid import GridParams, OccupancyGrid
 from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
 from sensors.lms200.driver import Lms200
 from sensors.lms200.protocol.plausibility import ScanLimits
@@ -31,6 +32,8 @@ from sensors.sim.world import World
 __all__ = [
     "T_robot_scanner",
     "beacon_parameters",
+    "ceiling_rule",
+    "cut_ceiling_band",
     "driver_from_config",
     "dwell_seconds",
     "graph_settings",
@@ -146,7 +149,31 @@ def station_params(config: Config) -> StationParams:
         free_min_observed=b.free_min_observed,
         window_m=config.search.window_m,
         max_window_m=config.search.max_window_m,
+        ceiling_rule=ceiling_rule(config),
     )
+
+
+def ceiling_rule(config: Config) -> CeilingRule | None:
+    """The rule of a ceiling band that follows the ceiling (``bands.ceiling_mode: follow``),
+    else None (the fixed band)."""
+    b = config.bands
+    if b.ceiling_mode == "fixed":
+        return None
+    return CeilingRule(depth_m=b.ceiling_depth_m, gap_m=b.ceiling_gap_m,
+                       smooth_m=b.ceiling_smooth_m,
+                       fallback_m=(b.ceiling.min_m, b.ceiling.max_m),
+                       clip=b.ceiling_mode == "clip")  # fmt: skip
+
+
+def cut_ceiling_band(grid: OccupancyGrid, config: Config) -> Band:
+    """The configuration's ceiling band of ``grid`` (fixed, or following the ceiling);
+    MapError when it holds no observed cell."""
+    b = config.bands
+    rule = ceiling_rule(config)
+    if rule is not None:
+        return extract_ceiling_band(grid, rule, free_min_observed=b.free_min_observed)
+    return extract_band(grid, b.ceiling.min_m, b.ceiling.max_m,
+                        free_min_observed=b.free_min_observed)  # fmt: skip
 
 
 def simulated_scanner(

@@ -50,7 +50,7 @@ from estimation.search.exhaustive import (
     windowed_search,
 )
 from estimation.search.lattice import pose_lattice
-from mapping.band import Band, extract_band
+from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
 from mapping.errors import MapError
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
@@ -157,6 +157,7 @@ class StationParams:
     free_min_observed: float
     window_m: float  # relocalization's first window side, and its largest
     max_window_m: float
+    ceiling_rule: CeilingRule | None = None  # a band that follows the ceiling, else ceiling_m
 
 
 @dataclass(frozen=True, eq=False)
@@ -209,7 +210,11 @@ def _band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
     grid = fuse_scans([MapScan(v.points_scanner) for v in usable], transforms, params.grid)
     low, high = params.ceiling_m if which == "ceiling" else params.floor_m
     try:
-        band = extract_band(grid, low, high, free_min_observed=params.free_min_observed)
+        if which == "ceiling" and params.ceiling_rule is not None:
+            band = extract_ceiling_band(grid, params.ceiling_rule,
+                                        free_min_observed=params.free_min_observed)  # fmt: skip
+        else:
+            band = extract_band(grid, low, high, free_min_observed=params.free_min_observed)
     except MapError:
         return None
     return band if band.known.sum() > 50 else None

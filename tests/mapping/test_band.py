@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mapping.band import Band, band_layers, extract_band
+from mapping.band import Band, CeilingRule, band_layers, extract_band, extract_ceiling_band
 from mapping.errors import MapError
 from mapping.figures import render_band
 from mapping.grid import GridParams, OccupancyGrid
@@ -152,3 +152,77 @@ def test_a_band_figure_is_drawn(tmp_path: Path) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rgb = np.asarray(imread(path))[..., :3].reshape(-1, 3)
     assert (rgb.max(axis=1) < 0.2).mean() > 0.01  # the walls are drawn dark
+
+
+def two_ceilings() -> OccupancyGrid:
+    """Two rooms side by side as a scanner sees them, 0.1 m cells: a low office (columns
+    i < 20, ceiling plane in layer 24, i.e. 2.4–2.5 m) with a luminaire hanging into layer 22
+    at column (5, 5), and a high hall (i ≥ 20, roof in layer 39) with a truss in layers 33–35 at
+    columns i = 30. Everything below each ceiling was seen free; nothing above it was seen.
+    Column (10, 8) saw no ceiling (a cupboard top at layer 18 hid it)."""
+    cells, evidence = [], []
+    for i in range(40):
+        for j in range(16):
+            roof = 24 if i < 20 else 39
+            for k in range(roof + 1):
+                occupied = (
+                    k == roof or ((i, j) == (5, 5) and k == 22) or (i == 30 and 33 <= k <= 35)
+                )
+                if (i, j) == (10, 8) and k > 18:
+                    break
+                cells.append((i, j, k))
+                evidence.append(0.9 if occupied or ((i, j) == (10, 8) and k == 18) else 0.2)
+    grid = OccupancyGrid(GridParams())
+    grid.apply_evidence(np.array(cells), np.array(evidence))
+    return grid
+
+
+def test_a_ceiling_band_follows_each_rooms_ceiling() -> None:
+    grid = two_ceilings()
+    rule = CeilingRule(depth_m=0.6, gap_m=0.1, smooth_m=0.5, fallback_m=(2.3, 2.9))
+    band = extract_ceiling_band(grid, rule)
+    assert band.shape == (16, 40)
+    assert band.known.all()
+    # The office: layers 18–23 (1.8–2.4 m); the luminaire fills one of six, the ceiling none.
+    office = band.occupancy[:, :20]
+    assert office[5, 5] == pytest.approx(1 / 6)
+    assert office.sum() == pytest.approx(1 / 6 + office[8, 10])
+    # The hall: layers 33–38; the truss fills three of six, the free air around it nothing.
+    hall = band.occupancy[:, 20:]
+    np.testing.assert_allclose(hall[:, 10], 3 / 6)
+    assert hall[:, [0, 5, 15, 19]].max() == 0.0
+    # The column whose ceiling was hidden takes its neighbours' band: its cupboard top at
+    # layer 18 lies in the band's lowest layer.
+    assert office[8, 10] == pytest.approx(1 / 6)
+
+
+def test_the_fixed_band_sees_only_ceilings_where_the_ceiling_band_sees_structure() -> None:
+    grid = two_ceilings()
+    fixed = extract_band(grid, 2.3, 2.9)  # layers 23–28
+    # In the office it holds the ceiling plane in every column, in the hall nothing but air.
+    assert fixed.occupancy[0, 0] == pytest.approx(1 / 6)
+    assert fixed.occupancy[:, 20:].max() == 0.0
+
+
+def test_a_ceiling_band_without_any_ceiling_falls_back_to_the_fixed_band() -> None:
+    grid = synthetic_room()  # walls reach the top layer 29: the walls are its "ceiling"
+    empty = OccupancyGrid(GridParams())
+    free = np.array([(i, j, k) for i in range(5) for j in range(5) for k in range(30)])
+    empty.apply_evidence(free, np.full(len(free), 0.2))
+    rule = CeilingRule(fallback_m=(1.95, 2.55))
+    band = extract_ceiling_band(empty, rule)
+    np.testing.assert_array_equal(band.occupancy, extract_band(empty, 1.95, 2.55).occupancy)
+    assert extract_ceiling_band(grid, rule).known.any()
+
+
+def test_ceiling_band_errors_are_one_line() -> None:
+    with pytest.raises(MapError, match="depth_m must be positive"):
+        CeilingRule(depth_m=0.0)
+    with pytest.raises(MapError, match="gap_m must be a finite length"):
+        CeilingRule(gap_m=math.nan)
+    with pytest.raises(MapError, match="grid is empty"):
+        extract_ceiling_band(OccupancyGrid(GridParams()), CeilingRule())
+    with pytest.raises(MapError, match="free_min_observed"):
+        extract_ceiling_band(two_ceilings(), CeilingRule(), free_min_observed=2.0)
+    with pytest.raises(MapError, match="empty rectangle"):
+        extract_ceiling_band(two_ceilings(), CeilingRule(), lower_xy=(1, 1), upper_xy=(0, 0))

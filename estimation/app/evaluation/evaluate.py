@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -27,7 +28,6 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from estimation.app.evaluation.metrics import ate, rpe
 from estimation.errors import EstimationError
-from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import load_map
 from sensors.atomic import output_kind, write_text_atomic
@@ -40,29 +40,42 @@ from sensors.yamlio import read_text_file, validate_mapping
 __all__ = ["evaluate", "map_quality"]
 
 
+@functools.lru_cache(maxsize=16)
+def _truth_track(path: str, stamp: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """A ground-truth file's stamps and (x, y, unwrapped yaw), read once per file version
+    (``stamp``: its modification time and size)."""
+    t, poses = read_tum(path)
+    return t, np.column_stack([poses[:, 0], poses[:, 1], np.unwrap(poses[:, 2])])
+
+
 def _truth_at(dataset: Path, robot: str, stamps: np.ndarray) -> np.ndarray:
     path = dataset / "ground_truth" / f"{robot}.tum"
     if not path.exists():  # a FIFO or a folder in its place is refused by read_tum
         raise EstimationError(f"{dataset}: no ground truth for robot {robot!r} ({path.name})")
-    t, poses = read_tum(path)
-    yaw = np.unwrap(poses[:, 2])
-    return np.column_stack(
-        [
-            np.interp(stamps, t, poses[:, 0]),
-            np.interp(stamps, t, poses[:, 1]),
-            np.interp(stamps, t, yaw),
-        ]
-    )
+    info = path.stat()
+    t, poses = _truth_track(str(path), (info.st_mtime_ns, info.st_size))
+    return np.column_stack([np.interp(stamps, t, poses[:, k]) for k in range(3)])
 
 
-def _dilate(keys: set[tuple[int, int, int]]) -> set[tuple[int, int, int]]:
-    out = set()
-    for i, j, k in keys:
-        for di in (-1, 0, 1):
-            for dj in (-1, 0, 1):
-                for dk in (-1, 0, 1):
-                    out.add((i + di, j + dj, k + dk))
-    return out
+def _keys(cells: np.ndarray) -> np.ndarray:
+    """Sorted unique int64 keys of (N, 3) cell indices (21 bits a coordinate, offset)."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 3) + (1 << 20)
+    return np.unique((c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2])
+
+
+def _dilate(keys: np.ndarray) -> np.ndarray:
+    """The keys of every cell within one cell (26-neighbourhood) of a key of ``keys``."""
+    offsets = [(di << 42) + (dj << 21) + dk
+               for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1)]  # fmt: skip
+    return np.unique(np.concatenate([keys + o for o in offsets]))
+
+
+def _within(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+    """Which ``keys`` are in ``sorted_keys`` (sorted unique)."""
+    if not len(sorted_keys):
+        return np.zeros(len(keys), dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[at] == keys
 
 
 def map_quality(grid: Any, world_path: Path) -> dict[str, Any]:
@@ -70,18 +83,16 @@ def map_quality(grid: Any, world_path: Path) -> dict[str, Any]:
     world = load_world(world_path)
     params = grid.params
     truth = surface_voxels(build_mesh(world), params.resolution_m, np.asarray(params.origin_m))
-    true_cells = {tuple(c) for c in truth.indices.tolist()}
+    true_cells = _keys(truth.indices)
     occupied, _ = grid.occupied()
-    occupied_cells = {tuple(c) for c in np.asarray(occupied).tolist()}
-    if not occupied_cells:
+    occupied_cells = _keys(occupied)
+    if not len(occupied_cells):
         return {"resolution_m": params.resolution_m, "precision": 0.0, "recall": 0.0, "occupied": 0}
-    near_truth = _dilate(true_cells)
-    near_map = _dilate(occupied_cells)
-    precision = sum(c in near_truth for c in occupied_cells) / len(occupied_cells)
+    precision = float(_within(occupied_cells, _dilate(true_cells)).mean())
     known_cells, _ = grid.cells()
-    known = {tuple(c) for c in np.asarray(known_cells).tolist()}
-    observed_truth = [c for c in true_cells if c in known]
-    recall = sum(c in near_map for c in observed_truth) / max(1, len(observed_truth))
+    observed_truth = true_cells[_within(true_cells, _keys(known_cells))]
+    near_map = _dilate(occupied_cells)
+    recall = float(_within(observed_truth, near_map).sum()) / max(1, len(observed_truth))
     return {
         "resolution_m": params.resolution_m,
         "precision": precision,
@@ -240,11 +251,10 @@ def _truth_figure(
     """``figures/ceiling_truth.png``: the result's ceiling band under the true world's walls,
     with each robot's estimated and true poses."""
     from estimation.app.figures import render_trajectories
+    from estimation.app.rig import cut_ceiling_band
 
-    band = data.config.bands.ceiling
     try:
-        ceiling = extract_band(grid, band.min_m, band.max_m,
-                               free_min_observed=data.config.bands.free_min_observed)  # fmt: skip
+        ceiling = cut_ceiling_band(grid, data.config)
     except MapError as exc:
         return {"ceiling_truth": f"not drawn: {exc}"}
     world = load_world(dataset / "world.yaml")

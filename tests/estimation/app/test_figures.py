@@ -90,7 +90,10 @@ def test_relocalizations_then_used_loop_closures_are_drawn_up_to_the_cap() -> No
     assert len(drawn) == MAX_PDF_FIGURES
     assert drawn[0][0] == "pdf_relocalization_b9_map_ceiling.png"
     kinds = [(r.kind, r.used) for _, r in drawn]
-    assert kinds[1:11] == [("loop", True)] * 10  # every used loop closure before the others
+    assert kinds[1:] == [("loop", True)] * (MAX_PDF_FIGURES - 1)  # used loop closures first
+    floor = [_record("relocalize", "a1", used=False, t=1.0)]
+    floor = [SearchRecord(**{**floor[0].__dict__, "band": "floor"})]
+    assert _pdf_figures(floor) == []  # the floor band's relocalizations are not drawn
     assert len({name for name, _ in drawn}) == len(drawn)
 
 
