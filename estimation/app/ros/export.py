@@ -30,11 +30,10 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config, load_config
-from estimation.app.rig import T_robot_scanner
+from estimation.app.rig import T_robot_scanner, cut_ceiling_band
 from estimation.app.ros.bag import BagMessage, check_mcap_replaceable, write_mcap
 from estimation.app.ros.messages import Color, RosMessages, covariance_6x6, stamp_ns
 from estimation.errors import EstimationError
-from mapping.band import extract_band
 from mapping.errors import MapError
 from mapping.formats.npz import load_map
 from mapping.formats.octomap_bt import encode_bt, tree_stream
@@ -318,11 +317,8 @@ def _map_messages(
     """The ceiling band, the occupied voxels (as points and as a voxel grid) and the OctoMap
     tree of ``grid``; and notes on what could not be written."""
     out, notes = [], []
-    band = config.bands.ceiling
     try:
-        ceiling = extract_band(
-            grid, band.min_m, band.max_m, free_min_observed=config.bands.free_min_observed
-        )
+        ceiling = cut_ceiling_band(grid, config)
         out.append(
             BagMessage(
                 "/map",
