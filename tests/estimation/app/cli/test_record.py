@@ -24,18 +24,11 @@ from estimation.app.dataset import decode_robot
 from estimation.app.pipeline import run_batch
 from estimation.app.sim.simulate import run_simulation
 from sensors.trajio import read_tum
+from tests.estimation.app.missions import ONE_STEP_MISSION
 
 COOPMAP = Path(sys.executable).parent / "coopmap"
 SPEED = 5.0  # fast, yet a recorder descheduled for a moment under load loses no telegram
-MISSION = """\
-world: essex_lab
-seed: 0
-robots:
-  - {name: a, start: [2.0, 3.5, 20]}
-  - {name: b, start: [3.5, 5.75, 220]}
-plan:
-  - {reference: a, mapper: b, scans: [[5.282, 6.053, -116.15]]}
-"""
+MISSION = ONE_STEP_MISSION
 
 
 @pytest.fixture(scope="module")

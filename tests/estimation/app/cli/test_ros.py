@@ -9,16 +9,9 @@ import yaml
 
 from estimation.app.sim.simulate import run_simulation
 from tests.estimation.app.cli.clirun import assert_one_line_error, run
+from tests.estimation.app.missions import ONE_STEP_MISSION
 
-MISSION = """\
-world: essex_lab
-seed: 0
-robots:
-  - {name: a, start: [2.0, 3.5, 20]}
-  - {name: b, start: [3.5, 5.75, 220]}
-plan:
-  - {reference: a, mapper: b, scans: [[5.282, 6.053, -116.15]]}
-"""
+MISSION = ONE_STEP_MISSION
 
 
 @pytest.fixture(scope="module")

@@ -34,16 +34,9 @@ from sensors.errors import OutputError
 from sensors.lms200.capture import CaptureReader
 from sensors.lms200.protocol.scan import SpecialCode
 from sensors.trajio import read_tum
+from tests.estimation.app.missions import ONE_STEP_MISSION
 
-MISSION = """\
-world: essex_lab
-seed: 0
-robots:
-  - {name: a, start: [2.0, 3.5, 20]}
-  - {name: b, start: [3.5, 5.75, 220]}
-plan:
-  - {reference: a, mapper: b, scans: [[5.282, 6.053, -116.15]]}
-"""
+MISSION = ONE_STEP_MISSION
 ROBOTS = ("a", "b")
 FOREIGN_TOPICS = ["/a/scan", "/b/scan", "/a/odom", "/b/odom"]
 #: The importer finds a dwell's ends on the odometry's samples (10 Hz in the simulator): one
