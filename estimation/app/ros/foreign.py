@@ -127,6 +127,7 @@ class _Robot:
     frames: tuple[str, tuple[str, ...]]  # the tf parent and children of its odometry
     writer: CaptureWriter
     flip: bool | None = None  # the beams come clockwise (None: no scan seen yet)
+    scan_frame: str | None = None  # the frame of its LaserScans
     last_scan_ns: int = -1
     last_odometry_ns: int = -1
     scans: int = 0
@@ -244,9 +245,11 @@ def _read_foreign(
     config: Config,
     threshold: float,
     tally: ImportTally,
+    statics: dict[tuple[str, str], tuple[float, float, float]],
 ) -> tuple[int, tuple[int, float]]:
-    """Encode every robot's scans into its capture and gather its odometry; returns the clock
-    zero (ns) and the scans' variant (field of view °, resolution °)."""
+    """Encode every robot's scans into its capture and gather its odometry and the static
+    transforms (into ``statics``: (parent, child) → translation); returns the clock zero (ns)
+    and the scans' variant (field of view °, resolution °)."""
     start_ns = int(reader.start_time)
     zero_ns = 0 if start_ns < _WALL_CLOCK_NS else start_ns // 10**9 * 10**9
     by_scan = {r.scan_topic: r for r in robots}
@@ -257,13 +260,25 @@ def _read_foreign(
         if r.odometry_topic == "/tf"
         for child in r.frames[1]
     }
-    names = sorted({*by_scan, *by_odometry, *(["/tf"] if by_frames else [])})
+    static = (
+        ["/tf_static"]
+        if any(i.msgtype == _TF for t, i in topics.items() if t == "/tf_static")
+        else []
+    )
+    names = sorted({*by_scan, *by_odometry, *(["/tf"] if by_frames else []), *static})
     by_id = {c.id: t for t in names for c in topics[t].connections}
     variant: tuple[int, float] | None = None
     for connection, log_ns, message in bag_messages(reader, connections_of(topics, names), bag):
         topic = by_id[connection.id]
-        if topic in by_scan:
+        if topic == "/tf_static":
+            for transform in message.transforms:
+                t = transform.transform.translation
+                key = (transform.header.frame_id.lstrip("/"), transform.child_frame_id.lstrip("/"))
+                statics[key] = (float(t.x), float(t.y), float(t.z))
+        elif topic in by_scan:
             robot = by_scan[topic]
+            if robot.scan_frame is None:
+                robot.scan_frame = message.header.frame_id.lstrip("/")
             if robot.flip is None:
                 fov, res, robot.flip = beam_layout(message, topic)
                 if variant is not None and variant != (fov, res):
@@ -332,10 +347,51 @@ def _add_odometry(robot: _Robot, ns: int, position: Any, rotation: Any, tally: I
     robot.poses.append(values)
 
 
-def _foreign_config(overrides: dict[str, Any] | None, variant: tuple[int, float]) -> dict[str, Any]:
-    """The mission's configuration: ``overrides`` with the scans' variant, which it must not
-    contradict."""
-    document = dict(overrides or {})
+def rig_from_tf(
+    robots: list[_Robot], statics: dict[tuple[str, str], tuple[float, float, float]],
+    tally: ImportTally,
+) -> dict[str, Any]:  # fmt: skip
+    """The scanner and beacon mounts the bag's ``/tf_static`` gives (``base_link`` →
+    the LaserScans' frame, and → ``<robot>/beacon``) as configuration: the first robot that has
+    them; a robot whose mounts differ by more than a millimetre is noted (one mission, one rig)."""
+    mounts = []
+    for robot in robots:
+        bases = robot.frames[1]
+        prefix = bases[0][: -len("base_link")]
+
+        def mount(child: str | None, bases: tuple[str, ...] = bases) -> Any:
+            return next((statics[(b, child)] for b in bases if (b, child) in statics), None)
+
+        scanner = mount(robot.scan_frame)
+        if scanner is not None and all(math.isfinite(v) for v in scanner):
+            beacon = mount(f"{prefix}beacon")
+            if beacon is not None and not all(math.isfinite(v) for v in beacon):
+                beacon = None
+            mounts.append((robot.name, scanner, beacon))
+    if not mounts:
+        return {}
+    name, scanner, beacon = mounts[0]
+    for other, s, b in mounts[1:]:
+        if max(abs(u - v) for u, v in zip(s, scanner, strict=True)) > 1e-3 or (b is None) != (
+            beacon is None
+        ) or (b is not None and beacon is not None
+              and max(abs(u - v) for u, v in zip(b, beacon, strict=True)) > 1e-3):  # fmt: skip
+            tally.notes.append(f"/tf_static: robot {other}'s mounts differ from robot {name}'s; "
+                               f"the mission uses robot {name}'s")  # fmt: skip
+    document: dict[str, Any] = {
+        "robot": {"scanner_x_m": round(scanner[0], 6), "scanner_height_m": round(scanner[2], 6)}
+    }
+    if beacon is not None:
+        document["beacon"] = {"offset_m": round(beacon[0] - scanner[0], 6),
+                              "height_m": round(beacon[2], 6)}  # fmt: skip
+    return document
+
+
+def _foreign_config(overrides: dict[str, Any] | None, variant: tuple[int, float],
+                    rig: dict[str, Any] | None = None) -> dict[str, Any]:  # fmt: skip
+    """The mission's configuration: the mounts of ``/tf_static`` (``rig``) under ``overrides``
+    (the user's --config wins), with the scans' variant, which it must not contradict."""
+    document = merge_mappings(dict(rig or {}), dict(overrides or {}))
     scanner = document.get("scanner") or {}
     given = (
         scanner.get("field_of_view_deg", variant[0]),
@@ -377,9 +433,10 @@ def import_foreign(
     """Write the dataset of a foreign bag (module docstring)."""
     config = config_from_mapping(options.overrides or {}, source="--config")
     robots = _foreign_robots(topics, options, work, bag)
+    statics: dict[tuple[str, str], tuple[float, float, float]] = {}
     try:
         zero_ns, variant = _read_foreign(
-            reader, bag, topics, robots, config, options.intensity_threshold, tally
+            reader, bag, topics, robots, config, options.intensity_threshold, tally, statics
         )
     except BaseException:
         for robot in robots:
@@ -387,7 +444,7 @@ def import_foreign(
         raise
     for robot in robots:
         robot.writer.close()
-    document = _foreign_config(options.overrides, variant)
+    document = _foreign_config(options.overrides, variant, rig_from_tf(robots, statics, tally))
     config = config_from_mapping(document, source="--config")
     odometry = {}
     for robot in robots:

@@ -254,6 +254,28 @@ def test_batch_on_a_foreign_bag_gives_the_poses(mission: Mission, foreign: Path)
         assert np.abs(got[:, 2] - expected[:, 2]).max() < FOREIGN_YAW_TOLERANCE_RAD
 
 
+def test_the_rig_mounts_come_from_tf_static(mission: Mission, tmp_path: Path) -> None:
+    def raised(topic: str, message: Any) -> Any:  # the scanner mounted 5 cm higher
+        for t in message.transforms if topic == "/tf_static" else []:
+            if t.child_frame_id.endswith("/scanner"):
+                t.transform.translation.z += 0.05
+        return message
+
+    bag = rewrite(mission.bag, tmp_path / "tf", [*FOREIGN_TOPICS, "/tf_static"], raised)
+    rig = {k: v for k, v in mission.config.items() if k not in ("robot", "beacon")}
+    import_bag(bag, tmp_path / "from_tf", foreign_options(mission, overrides=rig))
+    config = load_dataset(tmp_path / "from_tf").config
+    robot, beacon = mission.config["robot"], mission.config["beacon"]
+    assert config.robot.scanner_height_m == pytest.approx(robot["scanner_height_m"] + 0.05)
+    assert config.robot.scanner_x_m == pytest.approx(robot["scanner_x_m"])
+    assert config.beacon.offset_m == pytest.approx(beacon["offset_m"])
+    assert config.beacon.height_m == pytest.approx(beacon["height_m"])
+    # A --config that names the mounts wins over the bag's.
+    import_bag(bag, tmp_path / "from_config", foreign_options(mission))
+    given = load_dataset(tmp_path / "from_config").config
+    assert given.robot.scanner_height_m == pytest.approx(robot["scanner_height_m"])
+
+
 def test_a_ros1_bag_imports_as_the_ros2_one(
     mission: Mission, foreign: Path, tmp_path: Path
 ) -> None:
