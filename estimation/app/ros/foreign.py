@@ -360,6 +360,8 @@ def rig_from_tf(
         prefix = bases[0][: -len("base_link")]
 
         def mount(child: str | None, bases: tuple[str, ...] = bases) -> Any:
+            if child is None:
+                return None
             return next((statics[(b, child)] for b in bases if (b, child) in statics), None)
 
         scanner = mount(robot.scan_frame)
