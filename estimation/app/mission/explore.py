@@ -9,9 +9,11 @@ block it: a beacon behind what nobody has seen may be hidden).
 
 The explorer keeps the leapfrog of the paper: the reference turns in place to the heading from
 which it and a mapper around it see the most unknown space on the way to the nearest reachable
-frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
-so that both beacons are in view, that add the most unknown space and bring the pair closer to
-that frontier, less a cost for the path. Poses already taken are not taken again; a frontier
+frontier, among the headings from which the mapper, still standing where it was tied, sees its
+beacon at once (a mutual observation that ties the turn) when there are any; the mapper then
+takes the scan poses, in the reference's front sectors and facing it so that both beacons are
+in view, that add the most unknown space and bring the pair closer to that frontier, less a
+cost for the path. Poses already taken are not taken again; a frontier
 the pair has failed to shrink from several stations in a row is given up.
 """
 
@@ -40,11 +42,9 @@ from sensors.sim.planner import FreeSpace
 __all__ = ["Explorer", "MapView", "ScanGoal"]
 
 #: Weights of a mapper pose's score, in floor cells: per metre of path driven, per metre still
-#: to go to the target frontier; a station heading from which the mapper sees the reference's
-#: beacon at once (a mutual observation that ties the turn) gains this many.
+#: to go to the target frontier.
 _PATH_COST = 20.0
 _FRONTIER_COST = 200.0
-_STATION_TIE_BONUS = 150.0
 #: A heading facing at least this much unexplored floor (cells) may be taken before any mapper
 #: pose there is known, at this cost (cells).
 _LOOK_FIRST_CELLS, _LOOK_FIRST_COST = 200, 300.0
@@ -281,7 +281,7 @@ class Explorer:
             return None
         reachable = view.distances_from([start])
         goal = self._goal_field(view, frontier)
-        best, best_score = None, -math.inf
+        best, best_score = None, (False, -math.inf)
         for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
             pose = np.array([reference[0], reference[1], heading])
             candidates = self._candidates(view, pose, mapper, others, reachable, [])
@@ -293,10 +293,12 @@ class Explorer:
                 score = own - _LOOK_FIRST_COST
             else:
                 continue
-            if view.geometry.mutual(pose, mapper, (0.5, self.config.beacon.max_range_m)):
-                score += _STATION_TIE_BONUS
-            if score > best_score:
-                best, best_score = float(heading), score
+            # A heading from which the mapper, still where it was tied, sees the reference's
+            # beacon at once ties the turn by a mutual observation; otherwise only odometry and
+            # the station link measure it. Such a heading wins over every other.
+            tie = view.geometry.mutual(pose, mapper, (0.5, self.config.beacon.max_range_m))
+            if (tie, score) > best_score:
+                best, best_score = float(heading), (tie, score)
         return best
 
     def _value(self, view: MapView, candidate: np.ndarray, reachable: np.ndarray,
