@@ -29,6 +29,7 @@ __all__ = [
     "read_relations",
     "read_tum",
     "tum_rows",
+    "tum_text",
     "write_g2o",
     "write_tum",
 ]
@@ -93,9 +94,16 @@ def write_tum(
         raise TrajectoryError(
             f"write_tum: need stamps (N,) and poses (N, 3), got {stamps_s.shape} and {poses.shape}"
         )
-    rows = tum_rows(stamps_s, poses, z_m=z_m, decimals=decimals)
-    write_text_atomic(path, "# timestamp tx ty tz qx qy qz qw\n" + "".join(r + "\n" for r in rows))
+    write_text_atomic(path, tum_text(stamps_s, poses, z_m=z_m, decimals=decimals))
     return path
+
+
+def tum_text(
+    stamps_s: np.ndarray, poses: np.ndarray, *, z_m: float = 0.0, decimals: int = 9
+) -> str:
+    """The text :func:`write_tum` writes."""
+    rows = tum_rows(stamps_s, poses, z_m=z_m, decimals=decimals)
+    return "# timestamp tx ty tz qx qy qz qw\n" + "".join(r + "\n" for r in rows)
 
 
 def tum_rows(

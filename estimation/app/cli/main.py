@@ -17,6 +17,7 @@ from estimation.app.cli import (
     calibrate,
     dataset,
     evaluate_missions,
+    live,
     lms,
     localize,
     mission,
@@ -54,6 +55,9 @@ app.add_typer(dataset.dataset_app, name="dataset")
 app.command()(record.record)
 app.command()(record.replay)
 app.add_typer(record.clock_app, name="clock")
+app.command()(live.robot)
+app.command()(live.base)
+app.command("live")(live.live)
 
 
 def main() -> None:
@@ -63,3 +67,8 @@ def main() -> None:
     except KeyboardInterrupt:
         typer.echo("coopmap: interrupted", err=True)
         sys.exit(130)
+
+
+# ``python -m estimation.app.cli.main``: how coopmap live starts its processes.
+if __name__ == "__main__":
+    main()

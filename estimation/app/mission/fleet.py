@@ -34,7 +34,7 @@ from sensors.sim.mission import (
 from sensors.sim.planner import FreeSpace
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import World, perturb_movables, world_to_yaml
-from sensors.trajio import write_tum
+from sensors.trajio import tum_text
 
 __all__ = ["Fleet", "Goal", "Received", "SimulatedFleet", "Status"]
 
@@ -200,12 +200,16 @@ class SimulatedFleet(Fleet):
         self.builder.log("changes", objects=objects)
         return [f"{c.name} {c.action}" for c in moved]
 
-    def receive(self) -> Received:
+    def receive(self, robots: list[str] | None = None) -> Received:
+        """What the robots (all, or ``robots``: a robot agent records its own only) measured
+        since the last call."""
         now = self.builder.t
         got = Received(now_s=now)
         got.events = [dict(e) for e in self.timeline.events[self._events_sent :]]
         self._events_sent = len(self.timeline.events)
         for name, recorder in self.recorders.items():
+            if robots is not None and name not in robots:
+                continue
             due = recorder.due(now)
             chunks: list[tuple[float, bytes]] = []
             for start in range(0, len(due), CHUNK_SCANS):
@@ -222,15 +226,43 @@ class SimulatedFleet(Fleet):
         return np.arange(0.0, until_s + 1e-9, self.odometry_period_s)
 
     def finish(self, out_dir: Path) -> dict[str, Any]:
+        for name, text in self.truth_files().items():
+            write_text_atomic(out_dir / name, text)
+        return {"refused_goals": list(self.refused)}
+
+    def truth_files(self, robots: list[str] | None = None) -> dict[str, str]:
+        """The simulator's own files of the dataset (relative path → text): the true
+        trajectories of ``robots`` (all by default) and the world, as it was and as changed."""
         self.timeline.end_s = self.builder.t
         times = self._odometry_times(self.builder.t)
-        for name in self.robots:
+        files = {}
+        for name in robots or self.robots:
             truth = self.timeline.poses_at(name, times)
-            write_tum(out_dir / "ground_truth" / f"{name}.tum", times, truth, decimals=6)
-        write_text_atomic(out_dir / "world.yaml", world_to_yaml(self.world))
+            files[f"ground_truth/{name}.tum"] = tum_text(times, truth, decimals=6)
+        files["world.yaml"] = world_to_yaml(self.world)
         if self.changed_world is not None:
-            write_text_atomic(out_dir / "world_changed.yaml", world_to_yaml(self.changed_world))
-        return {"refused_goals": list(self.refused)}
+            files["world_changed.yaml"] = world_to_yaml(self.changed_world)
+        return files
+
+    def state(self) -> dict[str, Any]:
+        """What the sensors consumed so far (telegrams, odometry samples, the noise streams),
+        as JSON: with the goals replayed (:meth:`restore`), the simulation goes on exactly as
+        it would have — a restarted robot agent's checkpoint."""
+        return {
+            "telegrams": {r: rec.telegrams for r, rec in self.recorders.items()},
+            "odometry_sent": dict(self._odometry_sent),
+            "events_sent": self._events_sent,
+            "scan_rng": self.scan_rng.bit_generator.state,
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Take the sensors' :meth:`state` back after the goals were replayed (without
+        :meth:`receive`); the odometry noise is drawn again in leg order, as it was."""
+        for r, rec in self.recorders.items():
+            rec.telegrams = int(state["telegrams"][r])
+        self._odometry_sent = {r: int(v) for r, v in state["odometry_sent"].items()}
+        self._events_sent = int(state["events_sent"])
+        self.scan_rng.bit_generator.state = state["scan_rng"]
 
     def close(self) -> None:
         """Nothing to release: the simulated robots live in this process."""

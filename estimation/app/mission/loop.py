@@ -540,6 +540,7 @@ class MissionLoop:
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "given_up_frontiers": self.given_up,
             "stations": self.trace,
+            **{k: v for k, v in fleet_counts.items() if k != "refused_goals"},
         }  # fmt: skip
 
     def _next_map_seconds(self) -> dict[str, float | None]:

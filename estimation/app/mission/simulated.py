@@ -21,7 +21,28 @@ from sensors.sim.mission import MissionError, MissionSpec
 from sensors.sim.planner import FreeSpace, free_space
 from sensors.sim.world import World
 
-__all__ = ["fly"]
+__all__ = ["fly", "mission_starts", "simulated_fleet"]
+
+
+def mission_starts(mission: MissionSpec) -> dict[str, np.ndarray]:
+    """The robots' declared start poses (x_m, y_m, yaw_rad): the map frame."""
+    return {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
+            for r in mission.robots}  # fmt: skip
+
+
+def simulated_fleet(mission: MissionSpec, config: Config, world: World, seed: int,
+                    space: FreeSpace) -> SimulatedFleet:  # fmt: skip
+    """The mission's robots in the simulator. ``space`` is the planning free space (with its
+    margin): a robot that does not start in it is refused; the bodies collide only when they
+    touch."""
+    starts = mission_starts(mission)
+    body_space = free_space(world, robot_radius_m=config.robot.footprint_radius_m,
+                            robot_height_m=config.robot.body_height_m, margin_m=0.0)  # fmt: skip
+    for name, pose in starts.items():
+        if not space.is_free(pose[:2]):
+            raise MissionError(f"robot {name!r} starts at ({pose[0]:g}, {pose[1]:g}), where it "
+                               "does not fit")  # fmt: skip
+    return SimulatedFleet(world, body_space, config, starts, seed)
 
 
 def fly(
@@ -40,16 +61,7 @@ def fly(
     """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``
     (which becomes ``final`` when the caller replaces it there). ``observe`` is the loop's
     hook after every dwell (:attr:`MissionLoop.observe`)."""
-    starts = {r.name: np.array([r.start[0], r.start[1], math.radians(r.start[2])])
-              for r in mission.robots}  # fmt: skip
-    # The body collides when it touches: the planning margin is the loop's, on its own map.
-    body_space = free_space(world, robot_radius_m=config.robot.footprint_radius_m,
-                            robot_height_m=config.robot.body_height_m, margin_m=0.0)  # fmt: skip
-    for name, pose in starts.items():
-        if not space.is_free(pose[:2]):
-            raise MissionError(f"robot {name!r} starts at ({pose[0]:g}, {pose[1]:g}), where it "
-                               "does not fit")  # fmt: skip
-    fleet = SimulatedFleet(world, body_space, config, starts, seed)
+    fleet = simulated_fleet(mission, config, world, seed, space)
     loop = MissionLoop(
         fleet, mission, config, work, concurrent=concurrent, progress=status, observe=observe
     )

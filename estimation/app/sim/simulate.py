@@ -35,7 +35,7 @@ from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.world import ObjectChange, World, load_world, perturb_movables, world_to_yaml
 from sensors.yamlio import merge_mappings
 
-__all__ = ["SimulationResult", "resolve_mission_world", "run_simulation"]
+__all__ = ["SimulationResult", "load_simulated", "resolve_mission_world", "run_simulation"]
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,21 @@ def robot_free_space(world: World, config: Config) -> FreeSpace:
     )
 
 
+def load_simulated(
+    mission_path: Path, overrides: dict[str, Any] | None, seed: int | None
+) -> tuple[MissionSpec, Config, World, FreeSpace, int]:
+    """A mission file and what simulating it needs: the effective configuration, the world,
+    the robots' free space (with the planning margin) and the seed (the mission's, or
+    ``seed``)."""
+    mission = load_mission(mission_path)
+    config = mission_config(mission, overrides, str(mission_path))
+    world = load_world(resolve_mission_world(mission, mission_path))
+    seed = mission.seed if seed is None else seed
+    if seed < 0:
+        raise ConfigError(f"seed must be >= 0, got {seed}")
+    return mission, config, world, robot_free_space(world, config), seed
+
+
 def run_simulation(
     mission_path: Path | str,
     out_dir: Path | str,
@@ -91,13 +106,7 @@ def run_simulation(
     every dwell (missions flown by the loop only: ``plan: auto``, ``auto.planner: map``)."""
     mission_path = Path(mission_path)
     check_replaceable(Path(out_dir), "dataset")  # before the work, not after it
-    mission = load_mission(mission_path)
-    config = mission_config(mission, overrides, str(mission_path))
-    world = load_world(resolve_mission_world(mission, mission_path))
-    seed = mission.seed if seed is None else seed
-    if seed < 0:
-        raise ConfigError(f"seed must be >= 0, got {seed}")
-    space = robot_free_space(world, config)
+    mission, config, world, space, seed = load_simulated(mission_path, overrides, seed)
 
     if mission.plan == "auto" and mission.auto.planner == "map":
         return _fly_loop(mission, config, world, space, seed, Path(out_dir), mission_path,

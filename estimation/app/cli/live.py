@@ -1,0 +1,162 @@
+"""The live commands: robot (an agent per robot), base (the base station), live (both, here)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from estimation.app.cli.common import ConfigOption, cli_errors, make_console
+from estimation.app.config import ConfigError
+
+MissionArgument = Annotated[
+    Path, typer.Argument(help="A mission YAML file or a built-in mission name.")
+]
+
+
+def _overrides(config: Path | None) -> dict[str, Any] | None:
+    from sensors.yamlio import read_yaml_mapping
+
+    return read_yaml_mapping(config, ConfigError) if config is not None else None
+
+
+def _say(text: str) -> None:
+    make_console(stderr=True).print(f"[{time.strftime('%H:%M:%S')}] {text}")
+
+
+@cli_errors
+def robot(
+    mission: MissionArgument,
+    name: Annotated[str, typer.Option("--name", help="This robot's name in the mission.")],
+    simulate: Annotated[
+        bool,
+        typer.Option("--simulate", help="The robot is the simulator's (its world, its sensors)."),
+    ] = False,
+    connect: Annotated[
+        str, typer.Option(help="The base station's endpoint (tcp/HOST:PORT).")
+    ] = "tcp/127.0.0.1:7447",
+    folder: Annotated[
+        Path | None,
+        typer.Option(
+            "--dir", help="The robot's own disk copy (default runs/robots/<mission>-<r>)."
+        ),
+    ] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
+    faults: Annotated[
+        str | None,
+        typer.Option(
+            help="Inject faults into what this robot publishes, for tests: "
+            "drop=P,duplicate=P,reorder=P,seed=N."
+        ),
+    ] = None,
+    config: ConfigOption = None,
+) -> None:
+    """A robot agent: records to its own disk, publishes numbered chunks, executes the base's
+    goals (docs/live.md)."""
+    from estimation.app.live.agent import AgentFaults
+    from estimation.app.live.station import run_robot
+    from estimation.app.resources import resolve_builtin
+
+    if not simulate:
+        raise ConfigError(
+            "coopmap robot: only --simulate robots exist so far (a robot agent on "
+            "a real LMS 200 port is not built yet)"
+        )
+    path = resolve_builtin("missions", mission)
+    run_robot(
+        path,
+        name,
+        folder or Path("runs/robots") / f"{path.stem}-{name}",
+        connect=connect,
+        overrides=_overrides(config),
+        seed=seed,
+        faults=AgentFaults.parse(faults) if faults else None,
+        say=_say,
+    )
+
+
+@cli_errors
+def base(
+    mission: MissionArgument,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder the base rebuilds.")],
+    listen: Annotated[
+        str, typer.Option(help="Endpoint the base listens on (tcp/HOST:PORT).")
+    ] = "tcp/127.0.0.1:7447",
+    state: Annotated[
+        Path | None,
+        typer.Option(
+            help="Checkpoint folder (default: .<out>.base beside --out); a base "
+            "started again with it resumes the mission."
+        ),
+    ] = None,
+    join_timeout: Annotated[
+        float, typer.Option(min=1.0, help="How long to wait for every robot to join (s).")
+    ] = 60.0,
+    config: ConfigOption = None,
+) -> None:
+    """The base station: runs the mission loop with the robots on the network, rebuilds the
+    dataset from their chunks, publishes estimate, map and mission state (docs/live.md)."""
+    from estimation.app.live.station import BaseOptions, run_base
+    from estimation.app.resources import resolve_builtin
+
+    path = resolve_builtin("missions", mission)
+    result = run_base(BaseOptions(path, out, state, listen, _overrides(config), join_timeout),
+                      say=_say)  # fmt: skip
+    print_live(result.loop, out)
+
+
+def print_live(loop: dict[str, Any], out: Path) -> None:
+    console = make_console()
+    work = loop["work_per_dwell_s"]
+    console.print(
+        f"coopmap base: {loop['stop_reason']}; {loop['dwells']} dwells over "
+        f"{loop['duration_s']:.0f} s of mission; work per dwell median {work['median']:.2f} s, "
+        f"p99 {work['p99']:.2f} s"
+    )
+    network = loop.get("network", {})
+    for r, n in network.get("robots", {}).items():
+        lat = n["command_latency_s"]
+        console.print(
+            f"  robot {r}: {n['chunks']} chunks, {n['bytes'] / 1e6:.1f} MB "
+            f"({n['bytes_per_s'] / 1e3:.0f} kB/s); {n['queried_from_disk']} queried from its "
+            f"disk, {n['duplicates_dropped']} duplicates dropped; command round trip p50 "
+            f"{lat['p50']:.2f} s, p99 {lat['p99']:.2f} s"
+        )
+    if network.get("malformed_dropped") or network.get("foreign_dropped"):
+        console.print(f"  dropped {network['malformed_dropped']} malformed and "
+                      f"{network['foreign_dropped']} foreign messages")  # fmt: skip
+    console.print(f"  wrote {out}/ and its result {out / 'result'}/")
+
+
+@cli_errors
+def live(
+    mission: MissionArgument,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Dataset folder (with result/).")] = Path(
+        "runs/live"
+    ),
+    port: Annotated[int, typer.Option(min=0, max=65535, help="Loopback port (0: any free).")] = 0,
+    seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """The base and one simulated robot agent per robot as processes on this machine, over
+    Zenoh on loopback; a robot that dies is restarted (docs/live.md)."""
+    import json
+
+    from estimation.app.live.supervisor import LiveOptions, Supervisor
+    from estimation.app.resources import resolve_builtin
+    from sensors.sim.mission import load_mission
+
+    path = resolve_builtin("missions", mission)
+    spec = load_mission(path)
+    supervisor = Supervisor(LiveOptions(path, out, spec.robot_names(), port, config, seed),
+                            say=_say)  # fmt: skip
+    _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "
+         f"{', '.join(spec.robot_names())}; logs in {supervisor.logs}/")  # fmt: skip
+    code = supervisor.run()
+    if code != 0:
+        tail = supervisor.base_log().strip().splitlines()[-1:] or ["(no output)"]
+        raise ConfigError(f"the base stopped with exit code {code}: {tail[0]}")
+    report = json.loads((out / "result" / "report.json").read_text())
+    print_live(report["mission_loop"], out)

@@ -1,0 +1,479 @@
+"""``coopmap base``: the base station — the mission loop with the robots on the network.
+
+:class:`NetworkFleet` is the loop's :class:`~estimation.app.mission.fleet.Fleet` over Zenoh. Every
+goal, dwell and change is a numbered command sent to every robot agent (each keeps a copy of the
+mission's motion; the one addressed moves); a command is repeated until each robot replied,
+waiting while a robot is offline (its liveliness token gone). A reply names the robot's last
+chunk; the base holds every chunk up to it before it goes on — from the robots' publications,
+or queried from their disks when one is missing — so what the loop receives does not depend on
+what the network lost, duplicated or reordered. Chunks are kept by (robot, seq): a second copy
+is dropped; anything on the mission's keys that does not decode, or comes from a robot or run
+that is not the mission's, is counted and dropped.
+
+The checkpoint (``--state``, :class:`BaseState`) is the command log with the replies and every
+chunk received. The loop is deterministic in what it receives, so a restarted base resumes by
+running the loop again over the checkpoint — each command it decides must be the logged one —
+and goes on live where the log ends; robots answer the commands they executed already with the
+replies they gave. After every dwell the base publishes the mission state, the estimate and the
+ceiling map, and answers queries for them, so a viewer that joins late gets them at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimation.app.config import Config
+from estimation.app.live.wire import (
+    STREAMS,
+    WireError,
+    decode_chunk,
+    decode_json,
+    decode_lms,
+    decode_odometry,
+    encode_json,
+    mission_key,
+    parse_chunk_key,
+)
+from estimation.app.mission.fleet import Fleet, Goal, Received, Status
+from estimation.app.mission.simulated import mission_starts
+from sensors.atomic import MARKER, write_bytes_atomic, write_text_atomic
+from sensors.errors import OutputError
+from sensors.sim.mission import ChangesSpec, MissionSpec
+
+__all__ = ["BaseState", "NetworkCounts", "NetworkFleet"]
+
+Say = Callable[[str], None]
+#: How long one command may take a robot (ray casting a dwell's sweep) before it is sent again.
+COMMAND_TIMEOUT_S = 120.0
+
+
+class BaseState:
+    """The base's checkpoint folder: ``state.json`` (mission, run), ``commands.jsonl`` (each
+    command with every robot's reply, appended once all replied and every chunk they named
+    was held) and ``chunks/<r>/<seq>.<stream>``."""
+
+    KIND = "base-state"
+
+    def __init__(self, folder: Path, mission: str) -> None:
+        self.folder = Path(folder)
+        marker = self.folder / MARKER
+        if self.folder.exists() and any(self.folder.iterdir()):
+            try:
+                kind = json.loads(marker.read_text(encoding="utf-8")).get("kind")
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError):
+                kind = None
+            if kind != self.KIND:
+                raise OutputError(f"{self.folder}: exists and is not a coopmap base checkpoint; "
+                                  "choose another --state")  # fmt: skip
+            meta = json.loads((self.folder / "state.json").read_text(encoding="utf-8"))
+            if meta.get("mission") != mission:
+                raise OutputError(f"{self.folder}: the checkpoint of mission "
+                                  f"{meta.get('mission')!r}, not {mission!r}")  # fmt: skip
+            self.run: str = meta["run"]
+            self.resumed = True
+        else:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            marker.write_text(json.dumps({"kind": self.KIND, "pid": os.getpid()}) + "\n")
+            self.run = secrets.token_hex(4)
+            write_text_atomic(self.folder / "state.json",
+                              json.dumps({"mission": mission, "run": self.run}) + "\n")  # fmt: skip
+            self.resumed = False
+        self.log = self._read_log()
+
+    def _read_log(self) -> list[dict[str, Any]]:
+        path = self.folder / "commands.jsonl"
+        log = []
+        if path.is_file():
+            for line in path.read_bytes().split(b"\n"):
+                try:
+                    log.append(json.loads(line))
+                except (UnicodeDecodeError, json.JSONDecodeError):
+                    break  # cut short by a kill: that command is sent again
+        return log
+
+    def commit(self, entry: dict[str, Any]) -> None:
+        with open(self.folder / "commands.jsonl", "ab") as f:
+            f.write(encode_json(entry) + b"\n")
+            f.flush()
+            os.fsync(f.fileno())
+
+    def chunk_path(self, robot: str, seq: int, stream: str) -> Path:
+        return self.folder / "chunks" / robot / f"{seq:08d}.{stream}"
+
+    def stored_chunks(self) -> list[tuple[str, int, str, bytes]]:
+        out = []
+        root = self.folder / "chunks"
+        if root.is_dir():
+            for robot_dir in sorted(root.iterdir()):
+                for path in sorted(robot_dir.iterdir()):
+                    if path.suffix[1:] in STREAMS and path.stem.isdigit():
+                        out.append((robot_dir.name, int(path.stem), path.suffix[1:],
+                                    path.read_bytes()))  # fmt: skip
+        return out
+
+
+@dataclass
+class NetworkCounts:
+    """What crossed the network, per robot: chunks and bytes received, duplicates dropped,
+    chunks queried from the robot's disk; and the messages dropped as malformed or foreign."""
+
+    chunks: dict[str, int] = field(default_factory=dict)
+    bytes: dict[str, int] = field(default_factory=dict)
+    duplicates: dict[str, int] = field(default_factory=dict)
+    queried: dict[str, int] = field(default_factory=dict)
+    resent: dict[str, int] = field(default_factory=dict)
+    latency_s: dict[str, list[float]] = field(default_factory=dict)
+    malformed: int = 0
+    foreign: int = 0
+    refused_robots: list[str] = field(default_factory=list)
+    offline: list[dict[str, Any]] = field(default_factory=list)
+
+    def as_dict(self, seconds: float) -> dict[str, Any]:
+        robots = {}
+        for r in sorted(self.chunks):
+            lat = np.array(self.latency_s.get(r) or [0.0])
+            robots[r] = {
+                "chunks": self.chunks[r], "bytes": self.bytes[r],
+                "bytes_per_s": self.bytes[r] / seconds if seconds > 0 else 0.0,
+                "duplicates_dropped": self.duplicates.get(r, 0),
+                "queried_from_disk": self.queried.get(r, 0),
+                "commands_resent": self.resent.get(r, 0),
+                "command_latency_s": {"p50": float(np.percentile(lat, 50)),
+                                      "p99": float(np.percentile(lat, 99))},
+            }  # fmt: skip
+        return {"robots": robots, "malformed_dropped": self.malformed,
+                "foreign_dropped": self.foreign, "refused_robots": self.refused_robots,
+                "offline": self.offline}  # fmt: skip
+
+
+class NetworkFleet(Fleet):
+    """The mission's robot agents behind the loop's fleet interface (see the docstring)."""
+
+    def __init__(self, session: Any, mission: MissionSpec, name: str, config: Config,
+                 state: BaseState, *, say: Say | None = None,
+                 command_timeout_s: float = COMMAND_TIMEOUT_S,
+                 join_timeout_s: float = 60.0) -> None:  # fmt: skip
+        self.session, self.spec, self.name, self.config = session, mission, name, config
+        self.state, self.run = state, state.run
+        self.say = say or (lambda text: None)
+        self.command_timeout_s = command_timeout_s
+        self.robots = mission.robot_names()
+        self.starts = mission_starts(mission)
+        self.key = mission_key(name)
+        self.counts = NetworkCounts()
+        self.began = time.monotonic()
+        for r in self.robots:
+            for table in (self.counts.chunks, self.counts.bytes):
+                table[r] = 0
+        self._lock = threading.Condition()
+        self.chunks: dict[str, dict[int, tuple[str, bytes]]] = {r: {} for r in self.robots}
+        self.online: set[str] = set()
+        self.headers: dict[str, dict[str, Any]] = {}
+        self.t = 0.0
+        self.index = dict.fromkeys(self.robots, 0)
+        self.events: list[dict[str, Any]] = [
+            {"t_s": 0.0, "event": "start", "robot": r, "index": 0} for r in self.robots
+        ]
+        self._events_sent = 0
+        self._delivered = dict.fromkeys(self.robots, -1)
+        self._expected = dict.fromkeys(self.robots, -1)
+        self.robot_events: dict[str, list[dict[str, Any]]] = {r: [] for r in self.robots}
+        self.refused: list[str] = []
+        self.seq = 0
+        self.replayed = 0
+        for robot, seq, stream, data in state.stored_chunks():
+            if robot in self.chunks:
+                self.chunks[robot][seq] = (stream, _payload(data))
+        self._declared = [
+            session.declare_subscriber(f"{self.key}/robot/**", self._on_sample),
+            session.liveliness().declare_subscriber(
+                f"{self.key}/alive/*", self._on_alive, history=True
+            ),
+        ]
+        self._wait_for_robots(join_timeout_s)
+
+    # -- what arrives --------------------------------------------------------------------------
+
+    def _on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        parsed = parse_chunk_key(key, self.name)
+        if parsed is None:
+            # cmd/store/info replies do not come here; anything else is not ours
+            if not key.endswith(("/cmd", "/store", "/info")):
+                with self._lock:
+                    self.counts.foreign += 1
+            return
+        self._take(parsed, sample.payload.to_bytes())
+
+    def _take(self, parsed: tuple[str, str, int], data: bytes, queried: bool = False) -> None:
+        robot, stream, seq = parsed
+        try:
+            chunk = decode_chunk(data)
+        except WireError:
+            with self._lock:
+                self.counts.malformed += 1
+            return
+        with self._lock:
+            if (
+                robot not in self.chunks
+                or (chunk.robot, chunk.stream, chunk.seq) != parsed
+                or (chunk.mission != self.name or chunk.run != self.run)
+            ):
+                self.counts.foreign += 1
+                return
+            if seq in self.chunks[robot]:
+                self.counts.duplicates[robot] = self.counts.duplicates.get(robot, 0) + 1
+                return
+            write_bytes_atomic(self.state.chunk_path(robot, seq, stream), data)
+            self.chunks[robot][seq] = (stream, chunk.payload)
+            self.counts.chunks[robot] += 1
+            self.counts.bytes[robot] += len(data)
+            if queried:
+                self.counts.queried[robot] = self.counts.queried.get(robot, 0) + 1
+            self._lock.notify_all()
+
+    def _take_queried(self, robot: str, data: bytes) -> None:
+        """A chunk from the robot's disk: its header says which it is."""
+        try:
+            chunk = decode_chunk(data)
+        except WireError:
+            with self._lock:
+                self.counts.malformed += 1
+            return
+        self._take((robot, chunk.stream, chunk.seq), data, queried=True)
+
+    def _on_alive(self, sample: Any) -> None:
+        import zenoh
+
+        robot = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if robot not in self.robots:
+                if robot not in self.counts.refused_robots:
+                    self.counts.refused_robots.append(robot)
+                    self.say(f"refused robot {robot!r}: not in mission {self.name}")
+                return
+            if sample.kind == zenoh.SampleKind.PUT:
+                if robot not in self.online:
+                    self.say(f"robot {robot} online")
+                self.online.add(robot)
+            else:
+                self.online.discard(robot)
+                self.counts.offline.append({"robot": robot, "mission_s": self.t,
+                                            "unix_s": time.time()})  # fmt: skip
+                self.say(f"robot {robot} offline: waiting for it")
+            self._lock.notify_all()
+
+    def _wait_for_robots(self, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for robot in self.robots:
+            while robot not in self.headers:
+                if time.monotonic() > deadline:
+                    missing = [r for r in self.robots if r not in self.headers]
+                    raise WireError(f"robots {', '.join(missing)} did not join mission "
+                                    f"{self.name} within {timeout_s:g} s")  # fmt: skip
+                info = self._query_json(f"{self.key}/robot/{robot}/info", None, 2.0)
+                if info is not None and isinstance(info.get("header"), dict):
+                    self.headers[robot] = info["header"]
+                else:
+                    time.sleep(0.2)
+
+    def _query_json(self, key: str, payload: bytes | None,
+                    timeout_s: float) -> dict[str, Any] | None:  # fmt: skip
+        try:
+            replies = self.session.get(key, payload=payload, timeout=timeout_s)
+            for reply in replies:
+                if reply.ok is not None:
+                    return decode_json(reply.ok.payload.to_bytes(), key)
+                with contextlib.suppress(Exception):
+                    self.say(f"{key}: {reply.err.payload.to_bytes().decode(errors='replace')}")
+        except WireError:
+            with self._lock:
+                self.counts.malformed += 1
+        return None
+
+    # -- commands ------------------------------------------------------------------------------
+
+    def _command(self, op: str, args: dict[str, Any]) -> dict[str, dict[str, Any]]:
+        """Send command ``self.seq`` to every robot; their replies, once every chunk they
+        name is held."""
+        seq = self.seq
+        self.seq += 1
+        if seq < len(self.state.log):  # resuming: the checkpoint holds this command
+            entry = self.state.log[seq]
+            if entry["op"] != op or entry["args"] != json.loads(encode_json(args)):
+                raise WireError(f"checkpoint {self.state.folder}: command {seq} was "
+                                f"{entry['op']} {entry['args']}, the mission now decides {op} "
+                                f"{args}")  # fmt: skip
+            self.replayed += 1
+            replies: dict[str, dict[str, Any]] = entry["replies"]
+        else:
+            payload = encode_json({"run": self.run, "seq": seq, "op": op, "args": args})
+            replies = {}
+            threads = [threading.Thread(target=self._send, args=(r, seq, payload, replies))
+                       for r in self.robots]  # fmt: skip
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join()
+            self.state.commit({"seq": seq, "op": op, "args": args, "replies": replies})
+        for robot, reply in replies.items():
+            self._expected[robot] = max(self._expected[robot], int(reply["last_chunk"]))
+        return replies
+
+    def _send(self, robot: str, seq: int, payload: bytes,
+              replies: dict[str, dict[str, Any]]) -> None:  # fmt: skip
+        """Until ``robot`` replied to command ``seq`` and every chunk it names is held."""
+        key = f"{self.key}/robot/{robot}/cmd"
+        began = time.monotonic()
+        while True:
+            self._wait_online(robot)
+            reply = self._query_json(key, payload, self.command_timeout_s)
+            if reply is None:
+                self.counts.resent[robot] = self.counts.resent.get(robot, 0) + 1
+                time.sleep(0.2)
+                continue
+            if "need" in reply:  # the robot lacks earlier commands (its disk was lost)
+                self._catch_up(robot, int(reply["need"]), seq)
+                continue
+            if reply.get("seq") != seq or "last_chunk" not in reply:
+                with self._lock:
+                    self.counts.malformed += 1
+                continue
+            self._complete(robot, int(reply["last_chunk"]))
+            self.counts.latency_s.setdefault(robot, []).append(time.monotonic() - began)
+            replies[robot] = reply
+            return
+
+    def _catch_up(self, robot: str, first: int, seq: int) -> None:
+        for entry in self.state.log[first:seq]:
+            payload = encode_json({"run": self.run, "seq": entry["seq"], "op": entry["op"],
+                                   "args": entry["args"]})  # fmt: skip
+            self._query_json(f"{self.key}/robot/{robot}/cmd", payload, self.command_timeout_s)
+
+    def _wait_online(self, robot: str) -> None:
+        with self._lock:
+            while robot not in self.online:
+                self._lock.wait(0.5)
+
+    def _complete(self, robot: str, last: int) -> None:
+        """Hold every chunk of ``robot`` up to ``last``: wait briefly for the publications,
+        then query the robot's disk for what is missing."""
+        deadline = time.monotonic() + 0.5
+        while True:
+            with self._lock:
+                missing = [s for s in range(last + 1) if s not in self.chunks[robot]]
+                if not missing:
+                    return
+                left = deadline - time.monotonic()
+                if left > 0:
+                    self._lock.wait(left)
+                    continue
+            self._wait_online(robot)
+            selector = f"{self.key}/robot/{robot}/store?from={missing[0]};to={missing[-1]}"
+            for reply in self.session.get(selector, timeout=30.0):
+                if reply.ok is not None:
+                    self._take_queried(robot, reply.ok.payload.to_bytes())
+            deadline = time.monotonic() + 0.5
+
+    # -- the Fleet interface -------------------------------------------------------------------
+
+    def capture_header(self, robot: str) -> dict[str, Any]:
+        return dict(self.headers[robot])
+
+    def move(self, goal: Goal) -> Status:
+        args = {"robot": goal.robot, "pose": list(goal.pose),
+                "path": [list(p) for p in goal.path],
+                "believed": None if goal.believed is None else list(goal.believed)}  # fmt: skip
+        replies = self._command("move", args)
+        reply = replies[goal.robot]
+        before = self.index[goal.robot]
+        if not reply["ok"]:
+            self.refused.append(str(reply.get("reason")))
+            return Status(goal.robot, False, before, reply.get("reason"))
+        index = int(reply["index"])
+        if index != before:
+            self.events.append({
+                "t_s": round(float(reply["t_s"]), 6), "event": "move", "robot": goal.robot,
+                "from_index": before, "to_index": index,
+                "start_s": round(float(reply["start_s"]), 6),
+            })  # fmt: skip
+            self.index[goal.robot] = index
+            self.t = float(reply["t_s"])
+        return Status(goal.robot, True, index)
+
+    def dwell(self, **fields: Any) -> None:
+        replies = self._command("dwell", {"fields": fields})
+        end = max(float(r["t_s"]) for r in replies.values())
+        self.events.append({"t_s": round(self.t, 6), "event": "dwell", "end_s": round(end, 6),
+                            "poses": dict(self.index), **fields})  # fmt: skip
+        self.t = end
+
+    def log(self, event: str, **fields: Any) -> None:
+        self.events.append({"t_s": round(self.t, 6), "event": event, **fields})
+
+    def change_world(self, changes: ChangesSpec) -> list[str]:
+        replies = self._command("change", {"changes": changes.model_dump(mode="json")})
+        first = replies[self.robots[0]]
+        self.events.append({"t_s": round(self.t, 6), "event": "changes",
+                            "objects": first.get("objects", [])})  # fmt: skip
+        return list(first.get("moved", []))
+
+    def receive(self) -> Received:
+        got = Received(now_s=self.t)
+        got.events = [dict(e) for e in self.events[self._events_sent :]]
+        self._events_sent = len(self.events)
+        for robot in self.robots:
+            lms: list[tuple[float, bytes]] = []
+            times, poses = [np.zeros(0)], [np.zeros((0, 3))]
+            with self._lock:
+                pieces = [self.chunks[robot][s] for s in
+                          range(self._delivered[robot] + 1, self._expected[robot] + 1)]  # fmt: skip
+            for stream, payload in pieces:
+                if stream == "lms":
+                    lms += decode_lms(payload)
+                elif stream == "odom":
+                    t, p = decode_odometry(payload)
+                    times.append(t)
+                    poses.append(p)
+                else:
+                    self.robot_events[robot] += [json.loads(line) for line in
+                                                 payload.splitlines() if line]  # fmt: skip
+            self._delivered[robot] = self._expected[robot]
+            got.lms[robot] = lms
+            got.odometry[robot] = (np.concatenate(times), np.vstack(poses))
+        return got
+
+    def finish(self, out_dir: Path) -> dict[str, Any]:
+        replies = self._command("end", {})
+        for robot, reply in replies.items():
+            for name, text in (reply.get("files") or {}).items():
+                if name.startswith("ground_truth/") and name != f"ground_truth/{robot}.tum":
+                    continue
+                write_text_atomic(out_dir / name, text)
+        live = out_dir / "live"
+        for robot, events in self.robot_events.items():
+            write_text_atomic(live / robot / "events.jsonl",
+                              "".join(json.dumps(e) + "\n" for e in events))  # fmt: skip
+        seconds = time.monotonic() - self.began
+        return {"refused_goals": list(self.refused), "network": self.counts.as_dict(seconds),
+                "resumed_commands": self.replayed}  # fmt: skip
+
+    def close(self) -> None:
+        for entity in reversed(self._declared):
+            with contextlib.suppress(Exception):
+                entity.undeclare()
+
+
+def _payload(data: bytes) -> bytes:
+    return decode_chunk(data).payload

@@ -1,0 +1,197 @@
+"""The two processes' main functions: :func:`run_base` (``coopmap base``) and
+:func:`run_robot` (``coopmap robot``), each a typed function the CLI and the tests call."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from estimation.app.config import ConfigError
+from estimation.app.live.agent import AgentFaults, RobotAgent, SimulatedRobot
+from estimation.app.live.base import BaseState, NetworkFleet
+from estimation.app.live.session import DEFAULT_ENDPOINT, open_session
+from estimation.app.live.wire import WireError, encode_json, mission_key
+from estimation.app.mission.loop import LoopResult, MissionLoop
+from sensors.atomic import check_replaceable, replace_directory, write_text_atomic
+
+__all__ = ["BaseOptions", "default_state", "run_base", "run_robot"]
+
+Say = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class BaseOptions:
+    mission: Path
+    out: Path
+    state: Path | None = None
+    listen: str = DEFAULT_ENDPOINT
+    overrides: dict[str, Any] | None = None
+    join_timeout_s: float = 60.0
+    command_timeout_s: float = 120.0
+
+
+def default_state(out: Path) -> Path:
+    """Where the base keeps its checkpoint unless told: beside the dataset it writes."""
+    return out.with_name(f".{out.name}.base")
+
+
+class Publications:
+    """What the base publishes after every dwell, kept for viewers that ask later."""
+
+    def __init__(self, session: Any, mission: str) -> None:
+        self.session, self.key = session, f"{mission_key(mission)}/base"
+        self.latest: dict[str, bytes] = {}
+        self._lock = threading.Lock()
+        self._ros: Any = None
+        self.queryable = session.declare_queryable(f"{self.key}/**", self._serve)
+
+    def _serve(self, query: Any) -> None:
+        with self._lock:
+            items = list(self.latest.items())
+        for name, data in items:
+            key = f"{self.key}/{name}"
+            if query.key_expr.intersects(key):
+                query.reply(key, data)
+
+    def put(self, name: str, data: bytes) -> None:
+        with self._lock:
+            self.latest[name] = data
+        self.session.put(f"{self.key}/{name}", data)
+
+    def publish_loop(self, loop: MissionLoop, fleet: NetworkFleet) -> None:
+        from estimation.app.ros.export import Trajectory, result_messages
+        from estimation.posegraph.keys import split_key
+
+        poses: dict[str, dict[int, list[float]]] = {}
+        for key, pose in loop.estimate.items():
+            robot, index = split_key(key)
+            poses.setdefault(robot, {})[index] = [round(float(v), 6) for v in pose]
+        self.put("estimate", encode_json({
+            "mission_s": loop.now_s,
+            "poses": {r: {str(i): p for i, p in sorted(v.items())} for r, v in poses.items()},
+        }))  # fmt: skip
+        self.put("state", encode_json({
+            "mission_s": loop.now_s, "dwells": loop._dwells, "stations": len(loop.steps),
+            "online": sorted(fleet.online), "robots": fleet.robots,
+            "index": dict(loop.index),
+        }))  # fmt: skip
+        import numpy as np
+
+        trajectories = {
+            r: Trajectory(sorted(v), np.full(len(v), loop.now_s),
+                          np.array([v[i] for i in sorted(v)]), None)
+            for r, v in poses.items()
+        }  # fmt: skip
+        if trajectories:
+            if self._ros is None:
+                from estimation.app.ros.messages import RosMessages
+
+                self._ros = RosMessages()
+            messages, _ = result_messages(self._ros, loop.config, trajectories, loop.map.grid)
+            for m in messages:
+                if m.topic == "/map":  # nav_msgs/OccupancyGrid, CDR as on a ROS 2 link
+                    self.put("map", self._ros.serialize(m.message))
+
+    def close(self) -> None:
+        self.queryable.undeclare()
+
+
+def run_base(options: BaseOptions, say: Say | None = None) -> LoopResult:
+    """Run the mission with its robots on the network; resume from the checkpoint if there is
+    one. The dataset as the base rebuilt it, with the result in ``result/``, replaces
+    ``options.out``; the checkpoint is removed once that is done."""
+    from estimation.app.sim.simulate import mission_config
+    from sensors.sim.mission import load_mission
+
+    say = say or (lambda text: None)
+    check_replaceable(options.out, "dataset")
+    spec = load_mission(options.mission)
+    if len(spec.robots) < 2:
+        raise ConfigError(f"{options.mission}: a live mission needs two robots or more")
+    if spec.plan == "auto":  # the base has no world to plan on: it explores its map
+        spec = spec.model_copy(update={"auto": spec.auto.model_copy(update={"planner": "map"})})
+    config = mission_config(spec, options.overrides, str(options.mission))
+    name = options.mission.stem
+    state = BaseState(options.state or default_state(options.out), name)
+    if state.resumed:
+        say(f"resuming run {state.run} from {state.folder} ({len(state.log)} commands)")
+    session = open_session(listen=[options.listen])
+    try:
+        publications = Publications(session, name)
+        fleet = NetworkFleet(session, spec, name, config, state, say=say,
+                             command_timeout_s=options.command_timeout_s,
+                             join_timeout_s=options.join_timeout_s)  # fmt: skip
+        with replace_directory(options.out, "dataset") as work:
+            loop = MissionLoop(fleet, spec, config, work, progress=say,
+                               observe=lambda lp: publications.publish_loop(lp, fleet))  # fmt: skip
+            try:
+                reason = loop.run()
+            except BaseException:
+                loop.discard()
+                raise
+            result = loop.finish(work / "result", reason, options.out)
+            shutil.copy(state.folder / "commands.jsonl", work / "live" / "commands.jsonl")
+            network = json.dumps(result.loop.get("network", {}), indent=1) + "\n"
+            write_text_atomic(work / "live" / "network.json", network)
+        publications.put("state", encode_json({"mission_s": loop.now_s, "done": True,
+                                               "stop_reason": reason}))  # fmt: skip
+        fleet.close()
+        publications.close()
+    finally:
+        session.close()
+    shutil.rmtree(state.folder, ignore_errors=True)
+    return result
+
+
+def run_robot(
+    mission_path: Path,
+    robot: str,
+    folder: Path,
+    *,
+    connect: str = DEFAULT_ENDPOINT,
+    overrides: dict[str, Any] | None = None,
+    seed: int | None = None,
+    faults: AgentFaults | None = None,
+    say: Say | None = None,
+    stop: threading.Event | None = None,
+) -> None:
+    """One simulated robot of the mission as an agent process, until ``stop`` (or SIGTERM /
+    SIGINT when run as a process)."""
+    from estimation.app.mission.simulated import simulated_fleet
+    from estimation.app.sim.simulate import load_simulated
+
+    say = say or (lambda text: None)
+    spec, config, world, space, seed = load_simulated(mission_path, overrides, seed)
+    if robot not in spec.robot_names():
+        raise WireError(f"robot {robot!r} is not in mission {mission_path.stem} "
+                        f"(robots {', '.join(spec.robot_names())})")  # fmt: skip
+
+    def simulate() -> SimulatedRobot:
+        return SimulatedRobot(simulated_fleet(spec, config, world, seed, space), robot)
+
+    header = {"baud_rate": config.serial.baud_rate, "simulated": True,
+              "started_unix_s": time.time()}  # fmt: skip
+    session = open_session(connect=[connect])
+    agent = RobotAgent(session, mission_path.stem, robot, folder, header, simulate, faults, say)
+    stop = stop or threading.Event()
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, lambda *_: stop.set())
+    worker = threading.Thread(target=agent.run, name=f"robot-{robot}", daemon=True)
+    worker.start()
+    say(f"robot {robot} of mission {mission_path.stem} up, connecting to {connect}")
+    try:
+        while not stop.wait(0.1):
+            if not worker.is_alive():
+                break
+    finally:
+        agent.close()
+        worker.join(timeout=5.0)
+        session.close()
