@@ -78,7 +78,7 @@ class Publications:
             "poses": {r: {str(i): p for i, p in sorted(v.items())} for r, v in poses.items()},
         }))  # fmt: skip
         self.put("state", encode_json({
-            "mission_s": loop.now_s, "dwells": loop._dwells, "stations": len(loop.steps),
+            "mission_s": loop.now_s, "dwells": loop.dwells, "stations": len(loop.steps),
             "online": sorted(fleet.online), "robots": fleet.robots,
             "index": dict(loop.index),
         }))  # fmt: skip

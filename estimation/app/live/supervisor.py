@@ -67,6 +67,7 @@ class Supervisor:
         self.base: subprocess.Popen[bytes] | None = None
         self.agents: dict[str, subprocess.Popen[bytes]] = {}
         self.restarted: dict[str, int] = dict.fromkeys(options.robots, 0)
+        self.base_restarts = 0
         self.logs = options.out.with_name(f".{options.out.name}.logs")
         disks = robot_dirs(options.out)
         for path in (disks, self.logs):
@@ -114,7 +115,16 @@ class Supervisor:
         assert self.base is not None
         began = time.monotonic()
         try:
-            while (code := self.base.poll()) is None:
+            while True:
+                code = self.base.poll()
+                if code is not None and code < 0 and self.base_restarts < self.options.restarts:
+                    # killed by a signal (not an error of its own): it resumes from its checkpoint
+                    self.base_restarts += 1
+                    self.say(f"the base was killed ({-code}): starting it again")
+                    self._start_base()
+                    continue
+                if code is not None:
+                    break
                 if timeout_s is not None and time.monotonic() - began > timeout_s:
                     self.say(f"the mission took longer than {timeout_s:g} s: stopping it")
                     code = 124

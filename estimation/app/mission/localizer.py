@@ -11,6 +11,8 @@ their sweeps, the estimate and the factors at submission.
 from __future__ import annotations
 
 import multiprocessing
+import os
+import threading
 import time
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
@@ -28,7 +30,7 @@ from estimation.search.stations import (
     station_links,
 )
 
-__all__ = ["ConcurrentLocalizer", "Localized", "localize_station"]
+__all__ = ["ConcurrentLocalizer", "Localized", "localize_station", "watch_parent"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,18 @@ class _Job:
     submitted_mission_s: float
 
 
+def watch_parent(parent_pid: int, poll_s: float = 0.5) -> None:
+    """In the worker: exit when the loop's process is gone (killed with SIGKILL, a worker
+    would otherwise wait for work forever: it holds both ends of the pool's pipes)."""
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(poll_s)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="watch-parent", daemon=True).start()
+
+
 class ConcurrentLocalizer:
     """At most one station's searches at a time, in a worker process (or inline)."""
 
@@ -75,7 +89,10 @@ class ConcurrentLocalizer:
         self.params = params
         self._executor: ProcessPoolExecutor | None = None
         if concurrent:
-            self._executor = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self._executor = ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"),
+                initializer=watch_parent, initargs=(os.getpid(),),
+            )  # fmt: skip
         self._job: _Job | None = None
         self.done: list[tuple[Localized, float, float]] = []  # result, submitted, collected
 

@@ -236,6 +236,11 @@ class MissionLoop:
             self._since += time.perf_counter() - began
         return self._mutual_factors() > before
 
+    @property
+    def dwells(self) -> int:
+        """How many dwells the loop took in."""
+        return self._dwells
+
     def _work_done(self) -> None:
         """The loop's work after a dwell ends when it gives the robots their next command:
         taking in the recordings, iSAM2, fusion and choosing the goal all count."""

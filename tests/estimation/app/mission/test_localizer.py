@@ -181,3 +181,43 @@ def test_a_second_submission_before_collecting_and_an_unknown_station_are_errors
     assert localizer.collect(2.0) is not None
     assert localizer.collect(3.0) is None
     localizer.close()
+
+
+def test_the_worker_exits_when_the_loop_process_is_killed() -> None:
+    """A base killed with SIGKILL leaves no localization worker behind."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    script = (
+        "import time\n"
+        "from estimation.app.config import Config\n"
+        "from estimation.app.mission.localizer import ConcurrentLocalizer\n"
+        "from estimation.app.rig import station_params\n"
+        "loc = ConcurrentLocalizer(station_params(Config()), True)\n"
+        "future = loc._executor.submit(int, 1)\n"
+        "future.result()\n"
+        "print(*loc._executor._processes, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert parent.stdout is not None
+        worker = int(parent.stdout.readline())
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.1)
+        else:
+            os.kill(worker, signal.SIGKILL)
+            pytest.fail("the worker outlived its parent by 10 s")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()

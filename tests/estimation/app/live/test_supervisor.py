@@ -1,0 +1,188 @@
+"""``coopmap live`` with real processes on loopback, and the faults it must survive.
+
+One uninterrupted run of essex_lab is the reference. The faulty runs must end with the same
+estimate within 1 mm: a robot agent killed with SIGKILL and restarted while another robot
+drops, duplicates and reorders its chunks and foreign messages arrive; then the base killed and
+restarted while a robot is frozen past the liveliness lease. Each run is bounded in time and
+every process it started is gone afterwards.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from estimation.app.live.session import open_session
+from estimation.app.live.supervisor import LiveOptions, Supervisor, free_port, robot_dirs
+from estimation.app.live.wire import decode_json
+from estimation.app.resources import resolve_builtin
+from sensors.trajio import read_tum
+
+pytestmark = pytest.mark.slow
+
+MISSION = resolve_builtin("missions", Path("essex_lab"))
+RUN_TIMEOUT_S = 150.0
+
+
+def _poses(result: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for path in sorted((result / "poses").glob("*.tum")):
+        out[path.stem] = read_tum(path)[1]
+    return out
+
+
+def _commands_logged(out: Path) -> int:
+    path = out.with_name(f".{out.name}.base") / "commands.jsonl"
+    return path.read_bytes().count(b"\n") if path.exists() else 0
+
+
+def _wait(predicate: Any, timeout_s: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out waiting"
+        time.sleep(0.05)
+
+
+class Live:
+    """A supervised live mission in a thread; the test injects faults meanwhile."""
+
+    def __init__(self, out: Path, **options: Any) -> None:
+        self.supervisor = Supervisor(LiveOptions(MISSION, out, ["a", "b"], free_port(),
+                                                 **options))  # fmt: skip
+        self.code: int | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        self.code = self.supervisor.run(timeout_s=RUN_TIMEOUT_S)
+
+    def __enter__(self) -> Live:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.thread.join(RUN_TIMEOUT_S + 30)
+        assert not self.thread.is_alive()
+        for pid in self.supervisor.pids().values():
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)  # every process it started is gone
+        # ... and theirs (a killed base's localization worker): none writes to the logs
+        _wait(lambda: not _writers(self.supervisor.logs), timeout_s=10.0)
+
+
+def _writers(folder: Path) -> list[int]:
+    """The processes holding a file in ``folder`` open."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            links = [os.readlink(fd) for fd in (proc / "fd").iterdir()]
+        except OSError:
+            continue
+        if any(link.startswith(str(folder)) for link in links):
+            pids.append(int(proc.name))
+    return pids
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("live") / "clean"
+    with Live(out) as live:
+        pass
+    assert live.code == 0, live.supervisor.base_log()[-2000:]
+    return out
+
+
+def test_a_live_mission_completes_and_batch_reproduces_it(reference: Path, tmp_path: Path) -> None:
+    from estimation.app.pipeline import run_batch
+
+    report = json.loads((reference / "result" / "report.json").read_text())
+    loop = report["mission_loop"]
+    assert loop["stop_reason"] == "station budget (4) spent"
+    assert loop["dwells"] >= 8
+    for robot in ("a", "b"):
+        disk = robot_dirs(reference) / robot / "lms.cap"
+        assert (reference / "robots" / robot / "lms.cap").read_bytes() == disk.read_bytes()
+        network = loop["network"]["robots"][robot]
+        assert network["chunks"] > 0 and network["bytes"] > 100_000
+    batch = run_batch(reference, tmp_path / "batch")
+    live = _poses(reference / "result")
+    for robot, poses in _poses(tmp_path / "batch").items():
+        assert np.abs(poses[:, :2] - live[robot][:, :2]).max() < 1e-3
+    assert batch.report["robots"]["a"]["poses"] == len(live["a"])
+    # the truth travelled too: evaluate finds every file it needs
+    assert (reference / "ground_truth" / "a.tum").exists()
+    assert (reference / "world.yaml").exists()
+
+
+def test_a_killed_robot_and_a_lossy_link_change_nothing(reference: Path, tmp_path: Path) -> None:
+    out = tmp_path / "faulty"
+    with Live(out, faults={"b": "drop=0.3,duplicate=0.3,reorder=0.3,seed=4"}) as live:
+        session = open_session(connect=[live.supervisor.endpoint])
+        try:
+            _wait(lambda: _commands_logged(out) >= 5)
+            # foreign and malformed messages on the mission's keys; a robot not in the mission
+            session.put("coopmap/essex_lab/robot/a/lms/999", b"not a chunk")
+            session.put("coopmap/essex_lab/robot/a/odom/notanumber", b"x")
+            session.put("coopmap/essex_lab/robot/q/lms/0", b"x")
+            token = session.liveliness().declare_token("coopmap/essex_lab/alive/z")
+            os.kill(live.supervisor.pids()["robot-a"], signal.SIGKILL)
+            _wait(lambda: live.supervisor.restarted["a"] == 1)
+            # a viewer that joins late gets the current estimate and map at once
+            _wait(lambda: _commands_logged(out) >= 12)
+            got = {str(r.ok.key_expr).rsplit("/", 1)[-1]: r.ok.payload.to_bytes()
+                   for r in session.get("coopmap/essex_lab/base/**", timeout=5.0) if r.ok}  # fmt: skip
+            token.undeclare()
+        finally:
+            session.close()
+    assert live.code == 0, live.supervisor.base_log()[-2000:]
+    assert {"estimate", "map", "state"} <= set(got)
+    estimate = decode_json(got["estimate"], "estimate")
+    assert set(estimate["poses"]) == {"a", "b"}
+    report = json.loads((out / "result" / "report.json").read_text())
+    network = report["mission_loop"]["network"]
+    assert network["malformed_dropped"] >= 2  # not chunks, whoever's key they came on
+    assert network["foreign_dropped"] >= 1  # not a chunk key
+    assert network["refused_robots"] == ["z"]
+    assert network["robots"]["b"]["queried_from_disk"] > 0
+    assert network["robots"]["b"]["duplicates_dropped"] > 0
+    for robot in ("a", "b"):
+        disk = robot_dirs(out) / robot / "lms.cap"
+        assert (out / "robots" / robot / "lms.cap").read_bytes() == disk.read_bytes()
+    clean, faulty = _poses(reference / "result"), _poses(out / "result")
+    for robot in ("a", "b"):
+        assert faulty[robot].shape == clean[robot].shape
+        assert np.abs(faulty[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
+    clean_events = (reference / "events.jsonl").read_text()
+    assert (out / "events.jsonl").read_text() == clean_events
+
+
+def test_a_killed_base_resumes_and_a_frozen_robot_returns(reference: Path, tmp_path: Path) -> None:
+    out = tmp_path / "restarted"
+    with Live(out) as live:
+        _wait(lambda: _commands_logged(out) >= 4)
+        robot_b = live.supervisor.pids()["robot-b"]
+        os.kill(robot_b, signal.SIGSTOP)  # past the lease: the base sees it go offline
+        time.sleep(4.0)
+        os.kill(robot_b, signal.SIGCONT)
+        _wait(lambda: _commands_logged(out) >= 9)
+        os.kill(live.supervisor.pids()["base"], signal.SIGKILL)
+        _wait(lambda: live.supervisor.base_restarts == 1)
+    assert live.code == 0, live.supervisor.base_log()[-2000:]
+    log = live.supervisor.base_log()
+    assert "robot b offline" in log
+    assert "resuming run" in log
+    report = json.loads((out / "result" / "report.json").read_text())
+    assert report["mission_loop"]["resumed_commands"] >= 9
+    clean, resumed = _poses(reference / "result"), _poses(out / "result")
+    for robot in ("a", "b"):
+        assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
+    assert not out.with_name(f".{out.name}.base").exists()  # the checkpoint's work is done
