@@ -48,7 +48,8 @@ def test_a_checkpoint_cut_short_resumes_from_its_last_whole_line(tmp_path: Path)
     with open(state.folder / "commands.jsonl", "ab") as f:
         f.write(b'{"seq": 1, "op": "dw')
     again = BaseState(tmp_path / "state", "essex_lab")
-    assert again.resumed and again.run == state.run
+    assert again.resumed
+    assert again.run == state.run
     assert [e["seq"] for e in again.log] == [0]
     assert json.loads((state.folder / "state.json").read_text())["mission"] == "essex_lab"
 

@@ -75,7 +75,8 @@ def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list[
 def test_commands_record_chunks_and_replies(uninterrupted: tuple[Path, list[Any]]) -> None:
     folder, replies = uninterrupted
     assert [r["seq"] for r in replies] == list(range(len(COMMANDS)))
-    assert replies[1]["ok"] and replies[1]["index"] == 1  # b moved
+    assert replies[1]["ok"]
+    assert replies[1]["index"] == 1  # b moved
     assert replies[3]["index"] == 1  # a moved; b, still at its pose 1, recorded it
     assert replies[2]["t_s"] > replies[1]["t_s"] > replies[0]["t_s"] > 0
     chunks = sorted((folder / "chunks").iterdir())

@@ -112,7 +112,8 @@ def test_a_live_mission_completes_and_batch_reproduces_it(reference: Path, tmp_p
         disk = robot_dirs(reference) / robot / "lms.cap"
         assert (reference / "robots" / robot / "lms.cap").read_bytes() == disk.read_bytes()
         network = loop["network"]["robots"][robot]
-        assert network["chunks"] > 0 and network["bytes"] > 100_000
+        assert network["chunks"] > 0
+        assert network["bytes"] > 100_000
     batch = run_batch(reference, tmp_path / "batch")
     live = _poses(reference / "result")
     for robot, poses in _poses(tmp_path / "batch").items():
