@@ -51,6 +51,12 @@ def robot(
             "drop=P,duplicate=P,reorder=P,seed=N."
         ),
     ] = None,
+    clock_offset: Annotated[
+        float, typer.Option(help="Simulated robots: their clock's offset from mission time (s).")
+    ] = 0.0,
+    clock_drift_ppm: Annotated[
+        float, typer.Option(help="Simulated robots: their clock's drift (ppm).")
+    ] = 0.0,
     config: ConfigOption = None,
 ) -> None:
     """A robot agent: records to its own disk, publishes numbered chunks, executes the base's
@@ -73,6 +79,8 @@ def robot(
         overrides=_overrides(config),
         seed=seed,
         faults=AgentFaults.parse(faults) if faults else None,
+        clock_offset_s=clock_offset,
+        clock_drift_ppm=clock_drift_ppm,
         say=_say,
     )
 

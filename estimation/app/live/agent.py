@@ -193,6 +193,13 @@ class SimulatedRobot:
 
     fleet: SimulatedFleet
     robot: str
+    #: The robot's own clock: ``clock_offset_s + clock_rate · t`` at mission time t. Its
+    #: stamps are on it; the base maps them onto its clock (docs/live.md, "Clocks").
+    clock_offset_s: float = 0.0
+    clock_rate: float = 1.0
+
+    def local(self, t_s: float | np.ndarray) -> Any:
+        return self.clock_offset_s + self.clock_rate * t_s
 
     def apply(self, op: str, args: dict[str, Any]) -> dict[str, Any]:
         """Carry out one command on the simulator's copy of the mission; the reply's fields."""
@@ -213,7 +220,8 @@ class SimulatedRobot:
         """This robot's LMS records and odometry since the last call."""
         got = self.fleet.receive([self.robot])
         times, poses = got.odometry.get(self.robot, (np.zeros(0), np.zeros((0, 3))))
-        return got.lms.get(self.robot, []), times, poses
+        records = [(float(self.local(t)), data) for t, data in got.lms.get(self.robot, [])]
+        return records, self.local(times), poses
 
     @property
     def now_s(self) -> float:
@@ -300,6 +308,7 @@ class RobotAgent:
             session.declare_queryable(f"{base}/cmd", self.commands.put),
             session.declare_queryable(f"{base}/store", self._serve_store),
             session.declare_queryable(f"{base}/info", self._serve_info),
+            session.declare_queryable(f"{base}/clock", self._serve_clock),
             session.liveliness().declare_token(f"{mission_key(mission)}/alive/{robot}"),
         ]
 
@@ -343,6 +352,15 @@ class RobotAgent:
                 "done": len(store.log) - 1 if store is not None else -1,
                 "next_seq": 0 if store is None else store.next_seq,
             }))  # fmt: skip
+
+    def _serve_clock(self, query: Any) -> None:
+        """The robot's clock now: one side of the base's clock exchange."""
+        with query:
+            robot = self.robot
+            if robot is None:
+                query.reply_err(b"clock: no mission run yet")
+                return
+            query.reply(query.key_expr, encode_json({"t_s": float(robot.local(robot.now_s))}))
 
     # -- commands --------------------------------------------------------------------------------
 

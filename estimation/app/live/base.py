@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config
+from estimation.app.live.agent import capture_bytes
 from estimation.app.live.wire import (
     STREAMS,
     WireError,
@@ -49,6 +50,7 @@ from estimation.app.mission.fleet import Fleet, Goal, Received, Status
 from estimation.app.mission.simulated import mission_starts
 from sensors.atomic import MARKER, write_bytes_atomic, write_text_atomic
 from sensors.errors import OutputError
+from sensors.recording.clock import ClockMapping, ClockSample, fit_mapping
 from sensors.sim.mission import ChangesSpec, MissionSpec
 
 __all__ = ["BaseState", "NetworkCounts", "NetworkFleet"]
@@ -189,6 +191,7 @@ class NetworkFleet(Fleet):
         self._delivered = dict.fromkeys(self.robots, -1)
         self._expected = dict.fromkeys(self.robots, -1)
         self.robot_events: dict[str, list[dict[str, Any]]] = {r: [] for r in self.robots}
+        self.clock_samples: dict[str, list[ClockSample]] = {r: [] for r in self.robots}
         self.refused: list[str] = []
         self.seq = 0
         self.replayed = 0
@@ -329,6 +332,8 @@ class NetworkFleet(Fleet):
             self.state.commit({"seq": seq, "op": op, "args": args, "replies": replies})
         for robot, reply in replies.items():
             self._expected[robot] = max(self._expected[robot], int(reply["last_chunk"]))
+            if "clock_sample" in reply:
+                self.clock_samples[robot].append(ClockSample(*reply["clock_sample"]))
         return replies
 
     def _send(self, robot: str, seq: int, payload: bytes,
@@ -352,8 +357,32 @@ class NetworkFleet(Fleet):
                 continue
             self._complete(robot, int(reply["last_chunk"]))
             self.counts.latency_s.setdefault(robot, []).append(time.monotonic() - began)
+            sample = self._exchange(robot, float(reply["t_s"]))
+            if sample is not None:
+                reply["clock_sample"] = sample.as_list()
             replies[robot] = reply
             return
+
+    def _exchange(self, robot: str, now_s: float) -> ClockSample | None:
+        """One clock exchange with ``robot`` after a command: the robot's clock read between
+        two readings of the base's. In simulation the base's clock is the mission's, which
+        stands still between commands (``now_s``): the exchange has no round trip."""
+        t1 = now_s
+        reply = self._query_json(f"{self.key}/robot/{robot}/clock", None, 5.0)
+        t4 = now_s
+        value = None if reply is None else reply.get("t_s")
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            return None
+        return ClockSample(t1, float(value), float(value), t4)
+
+    def clock(self, robot: str) -> ClockMapping:
+        """The robot's clock → the base's, fitted on the exchanges so far (identity before
+        the first). As fitted, ``reference`` is the robot's clock: ``to_local`` maps a robot
+        stamp onto the base's clock."""
+        samples = self.clock_samples[robot]
+        if not samples:
+            return ClockMapping(0.0)
+        return fit_mapping(samples)
 
     def _catch_up(self, robot: str, first: int, seq: int) -> None:
         for entry in self.state.log[first:seq]:
@@ -436,15 +465,16 @@ class NetworkFleet(Fleet):
         for robot in self.robots:
             lms: list[tuple[float, bytes]] = []
             times, poses = [np.zeros(0)], [np.zeros((0, 3))]
+            clock = self.clock(robot)
             with self._lock:
                 pieces = [self.chunks[robot][s] for s in
                           range(self._delivered[robot] + 1, self._expected[robot] + 1)]  # fmt: skip
             for stream, payload in pieces:
                 if stream == "lms":
-                    lms += decode_lms(payload)
+                    lms += [(float(clock.to_local(t)), data) for t, data in decode_lms(payload)]
                 elif stream == "odom":
                     t, p = decode_odometry(payload)
-                    times.append(t)
+                    times.append(np.asarray(clock.to_local(t)))
                     poses.append(p)
                 else:
                     self.robot_events[robot] += [json.loads(line) for line in
@@ -465,9 +495,18 @@ class NetworkFleet(Fleet):
         for robot, events in self.robot_events.items():
             write_text_atomic(live / robot / "events.jsonl",
                               "".join(json.dumps(e) + "\n" for e in events))  # fmt: skip
+            # The capture as the robot recorded it, on its own clock (its disk copy, byte for
+            # byte); the dataset's is on the base's clock.
+            lms = [p for s, (stream, p) in sorted(self.chunks[robot].items()) if stream == "lms"]
+            write_bytes_atomic(live / robot / "lms.cap", capture_bytes(self.headers[robot], lms))
+            mapping = self.clock(robot)
+            clock = {"robot_to_base": "base_s = (robot_s - offset_s) / rate", **mapping.as_dict(),
+                     "samples": [s.as_list() for s in self.clock_samples[robot]]}  # fmt: skip
+            write_text_atomic(live / robot / "clock.json", json.dumps(clock, indent=1) + "\n")
         seconds = time.monotonic() - self.began
+        clocks = {r: self.clock(r).as_dict() for r in self.robots}
         return {"refused_goals": list(self.refused), "network": self.counts.as_dict(seconds),
-                "resumed_commands": self.replayed}  # fmt: skip
+                "clocks": clocks, "resumed_commands": self.replayed}  # fmt: skip
 
     def close(self) -> None:
         for entity in reversed(self._declared):

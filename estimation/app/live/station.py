@@ -159,6 +159,8 @@ def run_robot(
     overrides: dict[str, Any] | None = None,
     seed: int | None = None,
     faults: AgentFaults | None = None,
+    clock_offset_s: float = 0.0,
+    clock_drift_ppm: float = 0.0,
     say: Say | None = None,
     stop: threading.Event | None = None,
 ) -> None:
@@ -174,7 +176,8 @@ def run_robot(
                         f"(robots {', '.join(spec.robot_names())})")  # fmt: skip
 
     def simulate() -> SimulatedRobot:
-        return SimulatedRobot(simulated_fleet(spec, config, world, seed, space), robot)
+        fleet = simulated_fleet(spec, config, world, seed, space)
+        return SimulatedRobot(fleet, robot, clock_offset_s, 1.0 + clock_drift_ppm * 1e-6)
 
     header = {"baud_rate": config.serial.baud_rate, "simulated": True,
               "started_unix_s": time.time()}  # fmt: skip

@@ -28,6 +28,10 @@ __all__ = ["LiveOptions", "Supervisor", "free_port", "robot_dirs"]
 Say = Callable[[str], None]
 
 
+#: The drift of the simulated robots' clocks against the base's, by robot (ppm).
+CLOCK_DRIFTS_PPM = (40.0, -25.0, 12.0, -60.0)
+
+
 def free_port(host: str = "127.0.0.1") -> int:
     with socket.socket() as s:
         s.bind((host, 0))
@@ -95,6 +99,11 @@ class Supervisor:
                 self.endpoint, "--dir", str(disk), *self._common()]  # fmt: skip
         if o.seed is not None:
             args += ["--seed", str(o.seed)]
+        # Every simulated robot's clock is off and drifts, unlike the base's: the stamps cross
+        # the clock mapping as a real robot's do.
+        k = o.robots.index(robot)
+        args += ["--clock-offset", f"{1000.0 * (k + 1) + 0.25:g}",
+                 "--clock-drift-ppm", f"{CLOCK_DRIFTS_PPM[k % len(CLOCK_DRIFTS_PPM)]:g}"]  # fmt: skip
         if robot in o.faults:
             args += ["--faults", o.faults[robot]]
         self.agents[robot] = self._spawn(f"robot-{robot}", args)

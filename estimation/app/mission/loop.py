@@ -378,9 +378,12 @@ class MissionLoop:
                 reason = "no reachable frontier left"
                 break
             flown = self._station(k, explorer, reference, mapper, frontier)
-            if flown is None and k > 0:
-                # Stuck (a corner, a doorway): the mapper, standing elsewhere, references.
-                reference, mapper = mapper, reference
+            for other_reference, other_mapper in self._other_pairs(reference, mapper):
+                if flown is not None:
+                    break
+                # Stuck (a corner, a doorway, a robot in the way): another pair tries, the
+                # reference among the robots the estimate already places.
+                reference, mapper = other_reference, other_mapper
                 self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
                 flown = self._station(k, explorer, reference, mapper, frontier)
             if flown is None:
@@ -411,6 +414,16 @@ class MissionLoop:
                 mapper = names[(names.index(reference) + 1) % len(names)]
         self.given_up = [list(map(float, g)) for g in explorer.given_up]
         return reason
+
+    def _other_pairs(self, reference: str, mapper: str) -> list[tuple[str, str]]:
+        """The (reference, mapper) pairs to try when ``reference`` and ``mapper`` found no
+        scan pose: the same two swapped first, then the others; a reference must be placed
+        by the estimate."""
+        placed = [r for r in self.robots if pose_key(r, self.index[r]) in self.estimate]
+        pairs = [(mapper, reference)] + [
+            (r, m) for r in placed for m in self.robots if m != r and {r, m} != {reference, mapper}
+        ]
+        return [(r, m) for r, m in pairs if r in placed]
 
     def _station(self, k: int, explorer: Explorer, reference: str, mapper: str,
                  frontier: Any) -> _Flown | None:  # fmt: skip

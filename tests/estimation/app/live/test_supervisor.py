@@ -21,7 +21,13 @@ import numpy as np
 import pytest
 
 from estimation.app.live.session import open_session
-from estimation.app.live.supervisor import LiveOptions, Supervisor, free_port, robot_dirs
+from estimation.app.live.supervisor import (
+    CLOCK_DRIFTS_PPM,
+    LiveOptions,
+    Supervisor,
+    free_port,
+    robot_dirs,
+)
 from estimation.app.live.wire import decode_json
 from estimation.app.resources import resolve_builtin
 from sensors.trajio import read_tum
@@ -108,9 +114,13 @@ def test_a_live_mission_completes_and_batch_reproduces_it(reference: Path, tmp_p
     loop = report["mission_loop"]
     assert loop["stop_reason"] == "station budget (4) spent"
     assert loop["dwells"] >= 8
-    for robot in ("a", "b"):
+    for k, robot in enumerate(("a", "b")):
         disk = robot_dirs(reference) / robot / "lms.cap"
-        assert (reference / "robots" / robot / "lms.cap").read_bytes() == disk.read_bytes()
+        assert (reference / "live" / robot / "lms.cap").read_bytes() == disk.read_bytes()
+        # the robot's clock, off by 1000 s and drifting, was found from the exchanges
+        clock = loop["clocks"][robot]
+        assert clock["offset_s"] == pytest.approx(1000.0 * (k + 1) + 0.25, abs=1e-6)
+        assert clock["drift_ppm"] == pytest.approx(CLOCK_DRIFTS_PPM[k], abs=1e-6)
         network = loop["network"]["robots"][robot]
         assert network["chunks"] > 0
         assert network["bytes"] > 100_000
@@ -157,7 +167,7 @@ def test_a_killed_robot_and_a_lossy_link_change_nothing(reference: Path, tmp_pat
     assert network["robots"]["b"]["duplicates_dropped"] > 0
     for robot in ("a", "b"):
         disk = robot_dirs(out) / robot / "lms.cap"
-        assert (out / "robots" / robot / "lms.cap").read_bytes() == disk.read_bytes()
+        assert (out / "live" / robot / "lms.cap").read_bytes() == disk.read_bytes()
     clean, faulty = _poses(reference / "result"), _poses(out / "result")
     for robot in ("a", "b"):
         assert faulty[robot].shape == clean[robot].shape
