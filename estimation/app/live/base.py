@@ -474,7 +474,7 @@ class NetworkFleet(Fleet):
                     lms += [(float(clock.to_local(t)), data) for t, data in decode_lms(payload)]
                 elif stream == "odom":
                     t, p = decode_odometry(payload)
-                    times.append(np.asarray(clock.to_local(t)))
+                    times.append((t - clock.offset_s) / clock.rate)  # clock.to_local
                     poses.append(p)
                 else:
                     self.robot_events[robot] += [json.loads(line) for line in

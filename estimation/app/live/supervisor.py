@@ -102,8 +102,9 @@ class Supervisor:
         # Every simulated robot's clock is off and drifts, unlike the base's: the stamps cross
         # the clock mapping as a real robot's do.
         k = o.robots.index(robot)
-        args += ["--clock-offset", f"{1000.0 * (k + 1) + 0.25:g}",
-                 "--clock-drift-ppm", f"{CLOCK_DRIFTS_PPM[k % len(CLOCK_DRIFTS_PPM)]:g}"]  # fmt: skip
+        drift = CLOCK_DRIFTS_PPM[k % len(CLOCK_DRIFTS_PPM)]
+        offset = 1000.0 * (k + 1) + 0.25
+        args += ["--clock-offset", f"{offset:g}", "--clock-drift-ppm", f"{drift:g}"]
         if robot in o.faults:
             args += ["--faults", o.faults[robot]]
         self.agents[robot] = self._spawn(f"robot-{robot}", args)
