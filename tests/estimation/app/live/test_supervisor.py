@@ -60,8 +60,9 @@ def _wait(predicate: Any, timeout_s: float = 60.0) -> None:
 class Live:
     """A supervised live mission in a thread; the test injects faults meanwhile."""
 
-    def __init__(self, out: Path, **options: Any) -> None:
-        self.supervisor = Supervisor(LiveOptions(MISSION, out, ["a", "b"], free_port(),
+    def __init__(self, out: Path, mission: Path = MISSION, robots: tuple[str, ...] = ("a", "b"),
+                 **options: Any) -> None:  # fmt: skip
+        self.supervisor = Supervisor(LiveOptions(mission, out, list(robots), free_port(),
                                                  **options))  # fmt: skip
         self.code: int | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
@@ -197,3 +198,28 @@ def test_a_killed_base_resumes_and_a_frozen_robot_returns(reference: Path, tmp_p
     for robot in ("a", "b"):
         assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
     assert not out.with_name(f".{out.name}.base").exists()  # the checkpoint's work is done
+
+
+def test_a_three_robot_mission_in_a_generated_building(tmp_path: Path) -> None:
+    import yaml
+
+    from estimation.app.config import Config
+    from estimation.app.evaluation.missions import furnish_params, generated_mission
+    from estimation.app.pipeline import run_batch
+    from sensors.sim.generate import write_generated_world
+
+    write_generated_world(tmp_path / "building.yaml", 2, 3, furnish_params(Config()))
+    mission = generated_mission(tmp_path / "building.yaml", 2, 3, stations=3)
+    (tmp_path / "three.yaml").write_text(yaml.safe_dump(mission, sort_keys=False))
+    out = tmp_path / "live"
+    with Live(out, tmp_path / "three.yaml", ("a", "b", "c")) as live:
+        pass
+    assert live.code == 0, live.supervisor.base_log()[-2000:]
+    report = json.loads((out / "result" / "report.json").read_text())
+    assert report["mission_loop"]["stop_reason"] == "station budget (3) spent"
+    assert set(report["mission_loop"]["clocks"]) == {"a", "b", "c"}
+    run_batch(out, tmp_path / "batch")
+    live_poses, batch_poses = _poses(out / "result"), _poses(tmp_path / "batch")
+    assert set(batch_poses) == {"a", "b", "c"}
+    for robot, poses in batch_poses.items():
+        assert np.abs(poses[:, :2] - live_poses[robot][:, :2]).max() < 1e-3
