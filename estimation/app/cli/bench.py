@@ -183,3 +183,32 @@ def bench_graph(
             progress=lambda name: status.update(f"optimizing {name}…"),
         )
     typer.echo(json.dumps(report) if json_out else format_report(report))
+
+
+@bench_app.command("live")
+@cli_errors
+def bench_live(
+    mission: Annotated[
+        Path, typer.Argument(help="A mission YAML file or a built-in mission name.")
+    ] = Path("essex_lab"),
+    repeat: Annotated[int, typer.Option(min=1, help="Live runs (a soak); the best is kept.")] = 1,
+    faults: Annotated[
+        str | None,
+        typer.Option(help="Faults every robot injects: drop=P,duplicate=P,reorder=P,seed=N."),
+    ] = None,
+    json_out: JsonOption = False,
+) -> None:
+    """A mission live (processes over Zenoh on loopback) and in one process: wall times and
+    their ratio, scan → map latency, bytes per robot per second."""
+    import json
+
+    from estimation.app.bench.live import format_live_report, run_live_benchmark
+    from estimation.app.live.agent import AgentFaults
+    from estimation.app.resources import resolve_builtin
+
+    if faults:
+        AgentFaults.parse(faults)  # a bad --faults fails here, not in every robot
+    path = resolve_builtin("missions", mission)
+    with make_console(stderr=True).status(f"flying {path.stem} live and in one process…"):
+        result = run_live_benchmark(path, repeat=repeat, faults=faults)
+    typer.echo(json.dumps(result) if json_out else format_live_report(result))

@@ -32,6 +32,7 @@ import queue
 import random
 import shutil
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -415,7 +416,7 @@ class RobotAgent:
                  ("event", encode_json(event) + b"\n")]  # fmt: skip
         next_seq = store.next_seq
         for stream, payload in filter(None, parts):
-            chunk = Chunk(self.mission, run, self.name, stream, next_seq, payload)
+            chunk = Chunk(self.mission, run, self.name, stream, next_seq, payload, time.time())
             outgoing.append((chunk_key(self.mission, self.name, stream, next_seq),
                              store.put(chunk)))  # fmt: skip
             next_seq += 1

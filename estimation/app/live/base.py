@@ -136,6 +136,7 @@ class NetworkCounts:
     queried: dict[str, int] = field(default_factory=dict)
     resent: dict[str, int] = field(default_factory=dict)
     latency_s: dict[str, list[float]] = field(default_factory=dict)
+    scan_to_map_s: dict[str, list[float]] = field(default_factory=dict)
     malformed: int = 0
     foreign: int = 0
     refused_robots: list[str] = field(default_factory=list)
@@ -145,6 +146,7 @@ class NetworkCounts:
         robots = {}
         for r in sorted(self.chunks):
             lat = np.array(self.latency_s.get(r) or [0.0])
+            fused = np.array(self.scan_to_map_s.get(r) or [0.0])
             robots[r] = {
                 "chunks": self.chunks[r], "bytes": self.bytes[r],
                 "bytes_per_s": self.bytes[r] / seconds if seconds > 0 else 0.0,
@@ -153,6 +155,9 @@ class NetworkCounts:
                 "commands_resent": self.resent.get(r, 0),
                 "command_latency_s": {"p50": float(np.percentile(lat, 50)),
                                       "p99": float(np.percentile(lat, 99))},
+                "scan_to_map_s": {"p50": float(np.percentile(fused, 50)),
+                                  "p99": float(np.percentile(fused, 99)),
+                                  "chunks": len(self.scan_to_map_s.get(r, []))},
             }  # fmt: skip
         return {"robots": robots, "malformed_dropped": self.malformed,
                 "foreign_dropped": self.foreign, "refused_robots": self.refused_robots,
@@ -180,6 +185,10 @@ class NetworkFleet(Fleet):
                 table[r] = 0
         self._lock = threading.Condition()
         self.chunks: dict[str, dict[int, tuple[str, bytes]]] = {r: {} for r in self.robots}
+        #: The lms chunks received by this process (not from the checkpoint) and when the
+        #: robot recorded them; those delivered to the loop wait for :meth:`fused`.
+        self._recorded: dict[tuple[str, int], float] = {}
+        self._delivered_lms: list[tuple[str, float]] = []
         self.online: set[str] = set()
         self.headers: dict[str, dict[str, Any]] = {}
         self.t = 0.0
@@ -240,6 +249,8 @@ class NetworkFleet(Fleet):
                 return
             write_bytes_atomic(self.state.chunk_path(robot, seq, stream), data)
             self.chunks[robot][seq] = (stream, chunk.payload)
+            if stream == "lms":
+                self._recorded[(robot, seq)] = chunk.recorded_unix_s
             self.counts.chunks[robot] += 1
             self.counts.bytes[robot] += len(data)
             if queried:
@@ -467,8 +478,10 @@ class NetworkFleet(Fleet):
             times, poses = [np.zeros(0)], [np.zeros((0, 3))]
             clock = self.clock(robot)
             with self._lock:
-                pieces = [self.chunks[robot][s] for s in
-                          range(self._delivered[robot] + 1, self._expected[robot] + 1)]  # fmt: skip
+                seqs = range(self._delivered[robot] + 1, self._expected[robot] + 1)
+                pieces = [self.chunks[robot][s] for s in seqs]
+                self._delivered_lms += [(robot, self._recorded.pop((robot, s))) for s in seqs
+                                        if (robot, s) in self._recorded]  # fmt: skip
             for stream, payload in pieces:
                 if stream == "lms":
                     lms += [(float(clock.to_local(t)), data) for t, data in decode_lms(payload)]
@@ -483,6 +496,14 @@ class NetworkFleet(Fleet):
             got.lms[robot] = lms
             got.odometry[robot] = (np.concatenate(times), np.vstack(poses))
         return got
+
+    def fused(self) -> None:
+        """The loop's map now holds what :meth:`receive` delivered: each lms chunk's scan →
+        map latency ends here."""
+        now = time.time()
+        for robot, recorded in self._delivered_lms:
+            self.counts.scan_to_map_s.setdefault(robot, []).append(now - recorded)
+        self._delivered_lms = []
 
     def finish(self, out_dir: Path) -> dict[str, Any]:
         replies = self._command("end", {})

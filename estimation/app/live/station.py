@@ -69,6 +69,7 @@ class Publications:
         from estimation.app.ros.export import Trajectory, result_messages
         from estimation.posegraph.keys import split_key
 
+        fleet.fused()
         poses: dict[str, dict[int, list[float]]] = {}
         for key, pose in loop.estimate.items():
             robot, index = split_key(key)

@@ -76,6 +76,8 @@ class Chunk:
     stream: str
     seq: int
     payload: bytes
+    #: When the robot wrote it to its disk (its unix clock): the start of its scan → map time.
+    recorded_unix_s: float = 0.0
 
 
 def mission_key(mission: str) -> str:
@@ -103,7 +105,7 @@ def encode_chunk(chunk: Chunk) -> bytes:
     header = {
         "mission": chunk.mission, "run": chunk.run, "robot": chunk.robot,
         "stream": chunk.stream, "seq": chunk.seq, "size": len(chunk.payload),
-        "crc32": zlib.crc32(chunk.payload),
+        "crc32": zlib.crc32(chunk.payload), "recorded_unix_s": chunk.recorded_unix_s,
     }  # fmt: skip
     return MAGIC + json.dumps(header, sort_keys=True).encode() + b"\n" + chunk.payload
 
@@ -137,8 +139,11 @@ def decode_chunk(data: bytes) -> Chunk:
                         f"{header['size']}")  # fmt: skip
     if zlib.crc32(payload) != header["crc32"]:
         raise WireError(f"chunk {header['seq']}: CRC-32 mismatch")
+    recorded = header.get("recorded_unix_s", 0.0)
+    if not isinstance(recorded, int | float) or isinstance(recorded, bool):
+        raise WireError("chunk header: 'recorded_unix_s' is not a number")
     return Chunk(header["mission"], header["run"], header["robot"], header["stream"],
-                 header["seq"], bytes(payload))  # fmt: skip
+                 header["seq"], bytes(payload), float(recorded))  # fmt: skip
 
 
 def encode_json(value: Any) -> bytes:
