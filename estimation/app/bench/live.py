@@ -49,8 +49,8 @@ def run_live_benchmark(mission: Path, *, repeat: int = 1, faults: str | None = N
         root = Path(tmp)
         for k in range(repeat):
             out = root / f"live{k}"
-            options = LiveOptions(mission, out, robots,
-                                  faults=dict.fromkeys(robots, faults) if faults else {})  # fmt: skip
+            injected = dict.fromkeys(robots, faults) if faults else {}
+            options = LiveOptions(mission, out, robots, faults=injected)
             supervisor = Supervisor(options)
             began = time.perf_counter()
             code = supervisor.run(timeout_s=timeout_s)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from estimation.app.bench.live import peer_mission, format_live_report
+from estimation.app.bench.live import format_live_report, peer_mission
 from estimation.app.resources import resolve_builtin
 from tests.estimation.app.cli.clirun import assert_one_line_error, run
 
