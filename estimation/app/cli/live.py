@@ -163,6 +163,10 @@ def live(
     _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "
          f"{', '.join(spec.robot_names())}; logs in {supervisor.logs}/")  # fmt: skip
     code = supervisor.run()
+    if code == 130:
+        _say(f"interrupted: the base's checkpoint and the robots' disks stay beside {out}; "
+             "the same command resumes the mission")  # fmt: skip
+        raise typer.Exit(130)
     if code != 0:
         tail = supervisor.base_log().strip().splitlines()[-1:] or ["(no output)"]
         raise ConfigError(f"the base stopped with exit code {code}: {tail[0]}")

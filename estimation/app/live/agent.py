@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import queue
 import random
 import shutil
@@ -43,6 +42,7 @@ import numpy as np
 from estimation.app.live.wire import (
     Chunk,
     WireError,
+    append_journal,
     chunk_key,
     decode_chunk,
     decode_json,
@@ -52,6 +52,7 @@ from estimation.app.live.wire import (
     encode_lms,
     encode_odometry,
     mission_key,
+    read_journal,
 )
 from estimation.app.mission.fleet import Goal, SimulatedFleet
 from sensors.atomic import write_bytes_atomic, write_text_atomic
@@ -89,7 +90,7 @@ class RobotStore:
                               f"in mission {existing.get('mission')!r}, not {robot!r} in "
                               f"{mission!r}")  # fmt: skip
         self.header: dict[str, Any] = json.loads((self.folder / "store.json").read_text())["header"]
-        self.log: list[dict[str, Any]] = self._read_log()
+        self.log = read_journal(self.folder / "commands.jsonl")
         self.next_seq = int(self.log[-1]["next_seq"]) if self.log else 0
         for path in (self.folder / "chunks").iterdir():  # a command cut short left these
             if int(path.stem) >= self.next_seq:
@@ -125,21 +126,6 @@ class RobotStore:
             raise OutputError(f"{folder}: not a coopmap robot store; choose another --dir")
         return value
 
-    def _read_log(self) -> list[dict[str, Any]]:
-        path = self.folder / "commands.jsonl"
-        if not path.is_file():
-            return []
-        log = []
-        for line in path.read_bytes().split(b"\n"):
-            try:
-                entry = json.loads(line)
-            except (UnicodeDecodeError, json.JSONDecodeError):
-                break  # a line cut short by a kill: that command is redone
-            log.append(entry)
-        if len(log) != sum(1 for line in path.read_bytes().split(b"\n") if line):
-            path.write_bytes(b"".join(encode_json(e) + b"\n" for e in log))
-        return log
-
     def chunk_path(self, seq: int, stream: str) -> Path:
         return self.folder / "chunks" / f"{seq:08d}.{stream}"
 
@@ -149,10 +135,7 @@ class RobotStore:
         return data
 
     def commit(self, entry: dict[str, Any]) -> None:
-        with open(self.folder / "commands.jsonl", "ab") as f:
-            f.write(encode_json(entry) + b"\n")
-            f.flush()
-            os.fsync(f.fileno())
+        append_journal(self.folder / "commands.jsonl", entry)
         self.log.append(entry)
         self.next_seq = int(entry["next_seq"])
 

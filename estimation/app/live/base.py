@@ -38,6 +38,7 @@ from estimation.app.live.agent import capture_bytes
 from estimation.app.live.wire import (
     STREAMS,
     WireError,
+    append_journal,
     decode_chunk,
     decode_json,
     decode_lms,
@@ -45,6 +46,7 @@ from estimation.app.live.wire import (
     encode_json,
     mission_key,
     parse_chunk_key,
+    read_journal,
 )
 from estimation.app.mission.fleet import Fleet, Goal, Received, Status
 from estimation.app.mission.simulated import mission_starts
@@ -91,24 +93,10 @@ class BaseState:
             write_text_atomic(self.folder / "state.json",
                               json.dumps({"mission": mission, "run": self.run}) + "\n")  # fmt: skip
             self.resumed = False
-        self.log = self._read_log()
-
-    def _read_log(self) -> list[dict[str, Any]]:
-        path = self.folder / "commands.jsonl"
-        log = []
-        if path.is_file():
-            for line in path.read_bytes().split(b"\n"):
-                try:
-                    log.append(json.loads(line))
-                except (UnicodeDecodeError, json.JSONDecodeError):
-                    break  # cut short by a kill: that command is sent again
-        return log
+        self.log = read_journal(self.folder / "commands.jsonl")
 
     def commit(self, entry: dict[str, Any]) -> None:
-        with open(self.folder / "commands.jsonl", "ab") as f:
-            f.write(encode_json(entry) + b"\n")
-            f.flush()
-            os.fsync(f.fileno())
+        append_journal(self.folder / "commands.jsonl", entry)
 
     def chunk_path(self, robot: str, seq: int, stream: str) -> Path:
         return self.folder / "chunks" / robot / f"{seq:08d}.{stream}"
@@ -226,20 +214,23 @@ class NetworkFleet(Fleet):
                 with self._lock:
                     self.counts.foreign += 1
             return
-        self._take(parsed, sample.payload.to_bytes())
+        self._take(parsed[0], sample.payload.to_bytes(), parsed)
 
-    def _take(self, parsed: tuple[str, str, int], data: bytes, queried: bool = False) -> None:
-        robot, stream, seq = parsed
+    def _take(self, robot: str, data: bytes, key: tuple[str, str, int] | None = None) -> None:
+        """A chunk of ``robot``: published on ``key``, or (None) queried from its disk, where
+        its header says which it is."""
         try:
             chunk = decode_chunk(data)
         except WireError:
             with self._lock:
                 self.counts.malformed += 1
             return
+        seq, stream = chunk.seq, chunk.stream
         with self._lock:
             if (
                 robot not in self.chunks
-                or (chunk.robot, chunk.stream, chunk.seq) != parsed
+                or chunk.robot != robot
+                or (key is not None and (stream, seq) != key[1:])
                 or (chunk.mission != self.name or chunk.run != self.run)
             ):
                 self.counts.foreign += 1
@@ -253,19 +244,9 @@ class NetworkFleet(Fleet):
                 self._recorded[(robot, seq)] = chunk.recorded_unix_s
             self.counts.chunks[robot] += 1
             self.counts.bytes[robot] += len(data)
-            if queried:
+            if key is None:
                 self.counts.queried[robot] = self.counts.queried.get(robot, 0) + 1
             self._lock.notify_all()
-
-    def _take_queried(self, robot: str, data: bytes) -> None:
-        """A chunk from the robot's disk: its header says which it is."""
-        try:
-            chunk = decode_chunk(data)
-        except WireError:
-            with self._lock:
-                self.counts.malformed += 1
-            return
-        self._take((robot, chunk.stream, chunk.seq), data, queried=True)
 
     def _on_alive(self, sample: Any) -> None:
         import zenoh
@@ -423,7 +404,7 @@ class NetworkFleet(Fleet):
             selector = f"{self.key}/robot/{robot}/store?from={missing[0]};to={missing[-1]}"
             for reply in self.session.get(selector, timeout=30.0):
                 if reply.ok is not None:
-                    self._take_queried(robot, reply.ok.payload.to_bytes())
+                    self._take(robot, reply.ok.payload.to_bytes())
             deadline = time.monotonic() + 0.5
 
     # -- the Fleet interface -------------------------------------------------------------------

@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 import struct
 import zlib
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -38,6 +40,7 @@ __all__ = [
     "STREAMS",
     "Chunk",
     "WireError",
+    "append_journal",
     "chunk_key",
     "decode_chunk",
     "decode_json",
@@ -49,6 +52,7 @@ __all__ = [
     "encode_odometry",
     "mission_key",
     "parse_chunk_key",
+    "read_journal",
 ]
 
 MAGIC = b"COOPMAP-CHUNK 1\n"
@@ -196,3 +200,37 @@ def decode_odometry(payload: bytes) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(rows).all():
         raise WireError("odom chunk: a value is not finite")
     return rows[:, 0].copy(), rows[:, 1:].copy()
+
+
+def append_journal(path: Path, entry: dict[str, Any]) -> None:
+    """Append one JSON line to a journal (the robots' and the base's command logs), on disk
+    before this returns."""
+    with open(path, "ab") as f:
+        f.write(encode_json(entry) + b"\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def read_journal(path: Path) -> list[dict[str, Any]]:
+    """A journal's entries. A last line cut short by a kill is cut off the file too, so that
+    what is appended next starts on a line of its own."""
+    if not path.is_file():
+        return []
+    data = path.read_bytes()
+    entries, pos = [], 0
+    while pos < len(data):
+        end = data.find(b"\n", pos)
+        if end < 0:
+            break
+        try:
+            entry = json.loads(data[pos:end])
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            break
+        if not isinstance(entry, dict):
+            break
+        entries.append(entry)
+        pos = end + 1
+    if pos < len(data):
+        with open(path, "r+b") as f:
+            f.truncate(pos)
+    return entries

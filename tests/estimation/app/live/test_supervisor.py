@@ -223,3 +223,35 @@ def test_a_three_robot_mission_in_a_generated_building(tmp_path: Path) -> None:
     assert set(batch_poses) == {"a", "b", "c"}
     for robot, poses in batch_poses.items():
         assert np.abs(poses[:, :2] - live_poses[robot][:, :2]).max() < 1e-3
+
+
+def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
+    reference: Path, tmp_path: Path
+) -> None:
+    import subprocess
+    import sys
+
+    out = tmp_path / "interrupted"
+    command = [sys.executable, "-m", "estimation.app.cli.main", "live", "essex_lab", "--out",
+               str(out), "--port", str(free_port())]  # fmt: skip
+    first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(lambda: _commands_logged(out) >= 5)
+        first.send_signal(signal.SIGINT)
+        _, stderr = first.communicate(timeout=60)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    assert first.returncode == 130
+    assert "the same command resumes the mission" in stderr
+    assert "Traceback" not in stderr
+    assert not out.exists()
+    assert _commands_logged(out) >= 5  # the checkpoint stayed
+    assert (robot_dirs(out) / "a" / "commands.jsonl").exists()
+    second = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "coopmap base: station budget (4) spent" in second.stdout
+    clean, resumed = _poses(reference / "result"), _poses(out / "result")
+    for robot in ("a", "b"):
+        assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3

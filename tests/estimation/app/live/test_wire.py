@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,3 +144,19 @@ def test_endpoints() -> None:
                 "http/x:1", "tcp/a b:1"]:  # fmt: skip
         with pytest.raises(WireError, match="expected PROTOCOL/HOST:PORT"):
             check_endpoint(bad)
+
+
+def test_a_journal_cut_short_loses_only_its_last_line(tmp_path: Path) -> None:
+    from estimation.app.live.wire import append_journal, read_journal
+
+    path = tmp_path / "commands.jsonl"
+    assert read_journal(path) == []
+    append_journal(path, {"seq": 0})
+    append_journal(path, {"seq": 1})
+    with open(path, "ab") as f:
+        f.write(b'{"seq": 2, "op": "mo')  # killed while writing
+    assert read_journal(path) == [{"seq": 0}, {"seq": 1}]
+    append_journal(path, {"seq": 2})  # the next line starts on a line of its own
+    assert read_journal(path) == [{"seq": 0}, {"seq": 1}, {"seq": 2}]
+    path.write_bytes(b'{"seq": 0}\n[1, 2]\n{"seq": 1}\n')
+    assert read_journal(path) == [{"seq": 0}]
