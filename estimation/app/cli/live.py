@@ -154,10 +154,12 @@ def live(
 
     from estimation.app.live.supervisor import LiveOptions, Supervisor
     from estimation.app.resources import resolve_builtin
+    from estimation.app.sim.simulate import mission_config
     from sensors.sim.mission import load_mission
 
     path = resolve_builtin("missions", mission)
     spec = load_mission(path)
+    mission_config(spec, _overrides(config), str(path))  # a bad --config fails here, once
     supervisor = Supervisor(LiveOptions(path, out, spec.robot_names(), port, config, seed),
                             say=_say)  # fmt: skip
     _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "

@@ -34,82 +34,35 @@ from estimation import __version__
 from estimation.app.config import Config
 from estimation.app.dataset import (
     LmsDecoder,
-    Sweep,
     stations_of,
     sweeps_before_changes,
 )
 from estimation.app.events import EventMaker
+from estimation.app.mission.estimated_map import EstimatedMap
 from estimation.app.mission.explore import Explorer, MapView
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.pipeline import finish_isam, isam_options, prepare
 from estimation.app.results import BatchOutput
-from estimation.app.rig import T_robot_scanner, scan_limits, station_params
+from estimation.app.rig import scan_limits, station_params
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import IncrementalSmoother
 from estimation.search.stations import records_json
 from mapping.errors import MapError
-from mapping.fusion import Scan as MapScan
-from mapping.fusion import fuse_scans
-from mapping.grid import GridParams, OccupancyGrid
 from sensors.atomic import write_text_atomic
 from sensors.geometry import se2
-from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureWriter
 from sensors.sim.mission import MissionSpec, StepSpec, mission_to_yaml
 from sensors.trajio import as_logged, write_tum
 
-__all__ = ["EstimatedMap", "LoopResult", "MissionLoop"]
+__all__ = ["LoopResult", "MissionLoop"]
 
 Progress = Callable[[str], None]
-#: A fused sweep whose pose estimate moved more than this (m, rad) gets the map re-fused.
-_REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
 #: Exploration ends when the known floor grew by less than this (m²) over this many stations:
 #: what frontiers are left cannot be resolved from the floor the robots can reach.
 _STALL_M2, _STALL_STATIONS = 2.0, 10
 #: A planned mutual observation that failed is retried from this many other poses.
 _RETRIES = 2
-
-
-class EstimatedMap:
-    """The global grid as the loop estimates it, from the sweeps at their estimated poses."""
-
-    def __init__(self, config: Config) -> None:
-        self.params = GridParams(**config.grid.model_dump())
-        self.mount = T_robot_scanner(config)
-        self.grid = OccupancyGrid(self.params)
-        self.fused: dict[int, np.ndarray] = {}  # id(sweep) → the pose it was fused at
-        self.refusions = 0
-
-    def update(self, sweeps: list[Sweep], estimate: dict[int, np.ndarray]) -> None:
-        usable = [s for s in sweeps if pose_key(s.robot, s.index) in estimate]
-        moved = any(
-            id(s) in self.fused and _moved(self.fused[id(s)], estimate[pose_key(s.robot, s.index)])
-            for s in usable
-        )
-        if moved:
-            self.grid = OccupancyGrid(self.params)
-            self.fused = {}
-            self.refusions += 1
-        new = [s for s in usable if id(s) not in self.fused]
-        if not new:
-            return
-        poses = [estimate[pose_key(s.robot, s.index)] for s in new]
-        fuse_scans(
-            [MapScan(s.scan.points_scanner) for s in new],
-            np.stack([pose2_matrix(*p) @ self.mount for p in poses]),
-            self.params,
-            self.grid,
-        )
-        for sweep, pose in zip(new, poses, strict=True):
-            self.fused[id(sweep)] = pose.copy()
-
-
-def _moved(a: np.ndarray, b: np.ndarray) -> bool:
-    return (
-        math.hypot(a[0] - b[0], a[1] - b[1]) > _REFUSE_M
-        or abs(math.remainder(a[2] - b[2], 2 * math.pi)) > _REFUSE_RAD
-    )
 
 
 @dataclass

@@ -71,6 +71,9 @@ COMMANDS: dict[str, tuple[str, ...]] = {
     "dataset-merge": ("dataset", "merge", "{tmp}/nothing", "--out", "{tmp}/merged"),
     "world-generate": ("world", "generate", "--seed", "1", "--out", "{tmp}/gen.yaml"),
     "import": ("import", "{tmp}/none.mcap", "--out", "{tmp}/imported"),
+    "robot": ("robot", "essex_lab", "--name", "a", "--simulate", "--dir", "{tmp}/robot"),
+    "base": ("base", "essex_lab", "--out", "{tmp}/base", "--join-timeout", "1"),
+    "live": ("live", "essex_lab", "--out", "{tmp}/live"),
 }
 
 
