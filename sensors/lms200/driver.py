@@ -112,6 +112,9 @@ class Lms200:
         self.baud_switch_wait_s = baud_switch_wait_s
         self.retries = retries
         self.tap = tap
+        #: What stamps the bytes read (the tap's and the parser's stamps); the timeouts are on
+        #: the wall clock. An emulated sensor on a simulated clock sets both to that clock.
+        self.clock: Callable[[], float] = time.monotonic
         self.info: SensorInfo | None = None
         self.streaming = False
         self._serial: serial.SerialBase | None = None
@@ -179,7 +182,7 @@ class Lms200:
             raise DeviceError(f"{self.port} disappeared while {doing}: {exc}") from None
         if not chunk:
             return []
-        stamp = time.monotonic()
+        stamp = self.clock()
         if self.tap is not None:
             self.tap(stamp, chunk)
         return self._parser.feed(chunk, stamp)

@@ -119,6 +119,7 @@ class Lms200Emulator:
         self._clock = clock
         self.stream = stream
         self._streamed: tuple[float, bytes] | None = None
+        self._more = False
         self.state = EmulatorState(baud_rate=power_on_baud)
         self._power_on_baud = power_on_baud
         self._power_on_message = power_on_message
@@ -173,6 +174,11 @@ class Lms200Emulator:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def stream_more(self) -> None:
+        """Replay fed as it goes: ``stream`` has telegrams again after it ran dry (returned
+        None); the emulator asks it again (in its own thread, so no telegram is taken twice)."""
+        self._more = True
 
     def mute(self, muted: bool = True) -> None:
         """Stop (or resume) talking and listening, as a sensor that hangs."""
@@ -282,6 +288,11 @@ class Lms200Emulator:
                         self._send(payload)
                     if then is not None:
                         then()
+            if self._more:
+                self._more = False
+                if self.stream is not None and self.state.streaming and self._streamed is None:
+                    self._streamed = self.stream(now)
+                    self._next_scan = math.inf if self._streamed is None else self._streamed[0]
             if self.state.streaming and not self._muted and now >= self._next_scan:
                 self._emit_scan(now)
             if not self._muted:

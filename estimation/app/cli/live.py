@@ -34,6 +34,15 @@ def robot(
         bool,
         typer.Option("--simulate", help="The robot is the simulator's (its world, its sensors)."),
     ] = False,
+    emulate: Annotated[
+        bool,
+        typer.Option(
+            "--emulate",
+            help="A simulated robot whose LMS 200 telegrams go through the "
+            "device emulator on a pseudo-terminal and the real driver (implies "
+            "--simulate).",
+        ),
+    ] = False,
     connect: Annotated[
         str, typer.Option(help="The base station's endpoint (tcp/HOST:PORT).")
     ] = "tcp/127.0.0.1:7447",
@@ -65,10 +74,10 @@ def robot(
     from estimation.app.live.station import run_robot
     from estimation.app.resources import resolve_builtin
 
-    if not simulate:
+    if not (simulate or emulate):
         raise ConfigError(
-            "coopmap robot: only --simulate robots exist so far (a robot agent on "
-            "a real LMS 200 port is not built yet)"
+            "coopmap robot: only simulated robots exist so far (--simulate, --emulate); a "
+            "robot agent on a real LMS 200 port is not built yet"
         )
     path = resolve_builtin("missions", mission)
     run_robot(
@@ -81,6 +90,7 @@ def robot(
         faults=AgentFaults.parse(faults) if faults else None,
         clock_offset_s=clock_offset,
         clock_drift_ppm=clock_drift_ppm,
+        emulate=emulate,
         say=_say,
     )
 
@@ -146,6 +156,14 @@ def live(
     ),
     port: Annotated[int, typer.Option(min=0, max=65535, help="Loopback port (0: any free).")] = 0,
     seed: Annotated[int | None, typer.Option(help="Override the mission's seed.")] = None,
+    emulate: Annotated[
+        bool,
+        typer.Option(
+            "--emulate",
+            help="Each robot's LMS 200 telegrams go through the device "
+            "emulator on a pseudo-terminal and the real driver.",
+        ),
+    ] = False,
     config: ConfigOption = None,
 ) -> None:
     """The base and one simulated robot agent per robot as processes on this machine, over
@@ -160,8 +178,8 @@ def live(
     path = resolve_builtin("missions", mission)
     spec = load_mission(path)
     mission_config(spec, _overrides(config), str(path))  # a bad --config fails here, once
-    supervisor = Supervisor(LiveOptions(path, out, spec.robot_names(), port, config, seed),
-                            say=_say)  # fmt: skip
+    options = LiveOptions(path, out, spec.robot_names(), port, config, seed, emulate=emulate)
+    supervisor = Supervisor(options, say=_say)
     _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "
          f"{', '.join(spec.robot_names())}; logs in {supervisor.logs}/")  # fmt: skip
     code = supervisor.run()

@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from estimation.app.config import Config
+from estimation.app.live.emulated import EmulatedLms
 from estimation.app.live.wire import (
     Chunk,
     WireError,
@@ -181,6 +183,20 @@ class SimulatedRobot:
     #: stamps are on it; the base maps them onto its clock (docs/live.md, "Clocks").
     clock_offset_s: float = 0.0
     clock_rate: float = 1.0
+    #: ``--emulate``: the configuration of the LMS 200 whose telegrams go through the device
+    #: emulator on a pty and the real driver (:mod:`estimation.app.live.emulated`).
+    emulate: Config | None = None
+    lms: EmulatedLms | None = None
+
+    def start_sensors(self) -> None:
+        """After a replay: the emulated sensor, set up as on a robot, from where it stands."""
+        if self.emulate is not None and self.lms is None:
+            self.lms = EmulatedLms(self.emulate, self.now_s)
+
+    def close(self) -> None:
+        if self.lms is not None:
+            self.lms.close()
+            self.lms = None
 
     def local(self, t_s: float | np.ndarray) -> Any:
         return self.clock_offset_s + self.clock_rate * t_s
@@ -204,7 +220,10 @@ class SimulatedRobot:
         """This robot's LMS records and odometry since the last call."""
         got = self.fleet.receive([self.robot])
         times, poses = got.odometry.get(self.robot, (np.zeros(0), np.zeros((0, 3))))
-        records = [(float(self.local(t)), data) for t, data in got.lms.get(self.robot, [])]
+        records = got.lms.get(self.robot, [])
+        if self.lms is not None:
+            records = self.lms.pass_through(records)
+        records = [(float(self.local(t)), data) for t, data in records]
         return records, self.local(times), poses
 
     @property
@@ -300,8 +319,11 @@ class RobotAgent:
         """The store of ``run`` (an earlier run's is replaced), the simulation replayed."""
         self.store = RobotStore(self.folder, self.mission, run, self.name, self.header)
         self.header = self.store.header
+        if self.robot is not None:
+            self.robot.close()
         self.robot = self.simulate()
         self.robot.replay(self.store.log)
+        self.robot.start_sensors()
         if self.store.log:
             self.say(f"resumed run {run} after command {self.store.log[-1]['seq']} "
                      f"(next chunk {self.store.next_seq})")  # fmt: skip
@@ -430,3 +452,5 @@ class RobotAgent:
         for entity in reversed(self._declared):
             with contextlib.suppress(Exception):
                 entity.undeclare()
+        if self.robot is not None:
+            self.robot.close()

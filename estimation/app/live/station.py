@@ -162,6 +162,7 @@ def run_robot(
     faults: AgentFaults | None = None,
     clock_offset_s: float = 0.0,
     clock_drift_ppm: float = 0.0,
+    emulate: bool = False,
     say: Say | None = None,
     stop: threading.Event | None = None,
 ) -> None:
@@ -178,10 +179,11 @@ def run_robot(
 
     def simulate() -> SimulatedRobot:
         fleet = simulated_fleet(spec, config, world, seed, space)
-        return SimulatedRobot(fleet, robot, clock_offset_s, 1.0 + clock_drift_ppm * 1e-6)
+        return SimulatedRobot(fleet, robot, clock_offset_s, 1.0 + clock_drift_ppm * 1e-6,
+                              config if emulate else None)  # fmt: skip
 
     header = {"baud_rate": config.serial.baud_rate, "simulated": True,
-              "started_unix_s": time.time()}  # fmt: skip
+              "emulated": emulate, "started_unix_s": time.time()}  # fmt: skip
     session = open_session(connect=[connect])
     agent = RobotAgent(session, mission_path.stem, robot, folder, header, simulate, faults, say)
     stop = stop or threading.Event()

@@ -53,6 +53,8 @@ class LiveOptions:
     seed: int | None = None
     faults: dict[str, str] = field(default_factory=dict)  # robot → --faults text
     restarts: int = 5  # per robot
+    #: The robots' LMS 200 telegrams go through the device emulator on a pty and the driver.
+    emulate: bool = False
 
 
 def _command(*args: str) -> list[str]:
@@ -95,7 +97,8 @@ class Supervisor:
     def _start_robot(self, robot: str) -> None:
         o = self.options
         disk = robot_dirs(o.out) / robot
-        args = ["robot", str(o.mission), "--name", robot, "--simulate", "--connect",
+        source = "--emulate" if o.emulate else "--simulate"
+        args = ["robot", str(o.mission), "--name", robot, source, "--connect",
                 self.endpoint, "--dir", str(disk), *self._common()]  # fmt: skip
         if o.seed is not None:
             args += ["--seed", str(o.seed)]

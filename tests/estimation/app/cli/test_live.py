@@ -16,7 +16,7 @@ def test_a_robot_not_in_the_mission_is_refused(tmp_path: Path) -> None:
 
 def test_a_robot_needs_a_source(tmp_path: Path) -> None:
     assert_one_line_error(*run("robot", "essex_lab", "--name", "a", "--dir", tmp_path / "a"),
-                          r"only --simulate robots")  # fmt: skip
+                          r"only simulated robots exist so far")  # fmt: skip
 
 
 def test_bad_endpoints_are_one_line(tmp_path: Path) -> None:

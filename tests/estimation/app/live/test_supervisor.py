@@ -255,3 +255,26 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     clean, resumed = _poses(reference / "result"), _poses(out / "result")
     for robot in ("a", "b"):
         assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
+
+
+def test_robots_whose_lms_is_read_off_a_pty_give_the_same_estimate(
+    reference: Path, tmp_path: Path
+) -> None:
+    """``--emulate``: every telegram goes through the LMS 200 emulator on a pty and the real
+    driver (power-on, baud switch, configuration, continuous output), stamped on arrival."""
+    from sensors.lms200.capture import CaptureReader
+
+    out = tmp_path / "emulated"
+    with Live(out, emulate=True) as live:
+        pass
+    assert live.code == 0, live.supervisor.base_log()[-2000:]
+    for robot in ("a", "b"):
+        emulated = CaptureReader(out / "live" / robot / "lms.cap")
+        direct = CaptureReader(reference / "live" / robot / "lms.cap")
+        assert emulated.header["emulated"] is True
+        chunks = list(emulated.chunks())
+        assert b"".join(c for _, c in chunks) == b"".join(c for _, c in direct.chunks())
+        assert len(chunks) > len(list(direct.chunks()))  # cut into reads as the line gave them
+    clean, emulated_poses = _poses(reference / "result"), _poses(out / "result")
+    for robot in ("a", "b"):
+        assert np.abs(emulated_poses[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
