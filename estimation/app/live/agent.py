@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import queue
 import random
 import shutil
@@ -63,7 +64,14 @@ from sensors.lms200.capture import MAGIC as CAPTURE_MAGIC
 from sensors.sim.mission import ChangesSpec
 from sensors.trajio import tum_text
 
-__all__ = ["AgentFaults", "RobotAgent", "RobotStore", "SimulatedRobot", "capture_bytes"]
+__all__ = [
+    "AgentFaults",
+    "RobotAgent",
+    "RobotStore",
+    "SimulatedRobot",
+    "capture_bytes",
+    "sweep_summary",
+]
 
 #: How long the agent waits for the next command before looking at its stop flag (s).
 _POLL_S = 0.02
@@ -165,6 +173,32 @@ class RobotStore:
         if times:
             text = tum_text(np.concatenate(times), np.vstack(poses), decimals=6)
             write_text_atomic(self.folder / "odometry.tum", text)
+
+
+def sweep_summary(config: Config, header: dict[str, Any], records: list[tuple[float, bytes]],
+                  start_s: float, end_s: float) -> dict[str, Any]:  # fmt: skip
+    """On board, after a dwell: the sweep assembled from the dwell's telegrams (``records``,
+    stamped on the robot's clock) and the beacons detected in it, as the base will find them
+    in the capture."""
+    from estimation.app.dataset import LmsDecoder, sweep_in
+    from estimation.app.rig import beacon_parameters, scan_limits
+    from sensors.scan3d.beacon import detect_beacons
+
+    decoder = LmsDecoder(config.scanner.measuring_mode, scan_limits(config), header)
+    for stamp, data in records:
+        decoder.feed(stamp, data)
+    scan, why = sweep_in(decoder.stream(), start_s + 0.2, end_s, config)
+    if scan is None:
+        return {"dwell_s": [start_s, end_s], "scans": decoder.decoded, "why": why}
+    detections, rejections = detect_beacons(scan.points_scanner, scan.reflector,
+                                            **beacon_parameters(config))  # fmt: skip
+    return {
+        "dwell_s": [start_s, end_s], "scans": decoder.decoded, "sweep_scans": scan.scans,
+        "points": len(scan.points_scanner), "beacons_rejected": len(rejections),
+        "beacons": [{"range_m": round(d.range_m, 4),
+                     "bearing_deg": round(math.degrees(d.bearing_rad), 3),
+                     "returns": d.returns, "quality": round(d.quality, 3)} for d in detections],
+    }  # fmt: skip
 
 
 def capture_bytes(header: dict[str, Any], lms_payloads: list[bytes]) -> bytes:
@@ -416,9 +450,16 @@ class RobotAgent:
         records, times, poses = robot.recorded()
         outgoing = []
         event = {"seq": seq, "op": op, "t_s": round(robot.now_s, 6), "ok": reply["ok"]}
+        summary = None
+        if op == "dwell":
+            window = (float(robot.local(began)), float(robot.local(robot.now_s)))
+            summary = sweep_summary(robot.fleet.config, self.header, records, *window)
+            reply["sweep"] = {k: v for k, v in summary.items() if k != "beacons"}
+            reply["beacons"] = len(summary.get("beacons", []))
         parts = [("lms", encode_lms(records)) if records else None,
                  ("odom", encode_odometry(times, poses)) if len(times) else None,
-                 ("event", encode_json(event) + b"\n")]  # fmt: skip
+                 ("event", encode_json(event) + b"\n"),
+                 ("summary", encode_json(summary)) if summary is not None else None]  # fmt: skip
         next_seq = store.next_seq
         for stream, payload in filter(None, parts):
             chunk = Chunk(self.mission, run, self.name, stream, next_seq, payload, time.time())

@@ -189,6 +189,8 @@ class NetworkFleet(Fleet):
         self._expected = dict.fromkeys(self.robots, -1)
         self.robot_events: dict[str, list[dict[str, Any]]] = {r: [] for r in self.robots}
         self.clock_samples: dict[str, list[ClockSample]] = {r: [] for r in self.robots}
+        #: The robots' on-board summaries of their dwells (sweep, beacons seen).
+        self.summaries: dict[str, list[dict[str, Any]]] = {r: [] for r in self.robots}
         self.refused: list[str] = []
         self.seq = 0
         self.replayed = 0
@@ -470,6 +472,8 @@ class NetworkFleet(Fleet):
                     t, p = decode_odometry(payload)
                     times.append((t - clock.offset_s) / clock.rate)  # clock.to_local
                     poses.append(p)
+                elif stream == "summary":
+                    self.summaries[robot].append(json.loads(payload))
                 else:
                     self.robot_events[robot] += [json.loads(line) for line in
                                                  payload.splitlines() if line]  # fmt: skip
@@ -497,6 +501,8 @@ class NetworkFleet(Fleet):
         for robot, events in self.robot_events.items():
             write_text_atomic(live / robot / "events.jsonl",
                               "".join(json.dumps(e) + "\n" for e in events))  # fmt: skip
+            write_text_atomic(live / robot / "sweeps.jsonl", "".join(
+                json.dumps(e) + "\n" for e in self.summaries[robot]))  # fmt: skip
             # The capture as the robot recorded it, on its own clock (its disk copy, byte for
             # byte); the dataset's is on the base's clock.
             lms = [p for s, (stream, p) in sorted(self.chunks[robot].items()) if stream == "lms"]
@@ -507,8 +513,13 @@ class NetworkFleet(Fleet):
             write_text_atomic(live / robot / "clock.json", json.dumps(clock, indent=1) + "\n")
         seconds = time.monotonic() - self.began
         clocks = {r: self.clock(r).as_dict() for r in self.robots}
+        on_board = {r: {"sweeps": sum("points" in e for e in self.summaries[r]),
+                        "dwells": len(self.summaries[r]),
+                        "beacons": sum(len(e.get("beacons", [])) for e in self.summaries[r])}
+                    for r in self.robots}  # fmt: skip
         return {"refused_goals": list(self.refused), "network": self.counts.as_dict(seconds),
-                "clocks": clocks, "resumed_commands": self.replayed}  # fmt: skip
+                "clocks": clocks, "on_board": on_board,
+                "resumed_commands": self.replayed}  # fmt: skip
 
     def close(self) -> None:
         for entity in reversed(self._declared):

@@ -4,8 +4,10 @@ Keys, all under ``coopmap/<mission>/``:
 
 * ``robot/<r>/<stream>/<seq>`` — a robot's immutable numbered chunks. ``stream`` is ``lms`` (LMS
   capture records exactly as ``lms.cap`` holds them: float64 receive stamp, uint32 size, the
-  bytes off the port), ``odom`` (float64 rows ``t_s x_m y_m yaw_rad``) or ``event`` (JSON lines:
-  what the robot did). ``seq`` counts a robot's chunks over all its streams, from 0.
+  bytes off the port), ``odom`` (float64 rows ``t_s x_m y_m yaw_rad``), ``event`` (JSON lines:
+  what the robot did) or ``summary`` (JSON: the sweep the robot assembled from a dwell and the
+  beacons it detected in it, on board). ``seq`` counts a robot's chunks over all its streams,
+  from 0.
 * ``robot/<r>/cmd`` — the robot's queryable for the base's commands (numbered; a reply per
   command, the same reply again when a command is sent twice).
 * ``robot/<r>/store`` — the robot's queryable serving chunks from its disk (``?from=A;to=B``).
@@ -56,7 +58,7 @@ __all__ = [
 ]
 
 MAGIC = b"COOPMAP-CHUNK 1\n"
-STREAMS = ("lms", "odom", "event")
+STREAMS = ("lms", "odom", "event", "summary")
 #: Largest chunk accepted (a dwell of one robot's LMS output is ~2 MB).
 MAX_CHUNK = 1 << 27
 _MAX_HEADER = 4096

@@ -82,7 +82,12 @@ def test_commands_record_chunks_and_replies(uninterrupted: tuple[Path, list[Any]
     chunks = sorted((folder / "chunks").iterdir())
     assert len(chunks) == replies[-1]["last_chunk"] + 1
     streams = {decode_chunk(p.read_bytes()).stream for p in chunks}
-    assert streams == {"lms", "odom", "event"}
+    assert streams == {"lms", "odom", "event", "summary"}
+    # on board: each dwell's sweep assembled and the other robot's beacon found in it
+    for dwell in (replies[0], replies[2], replies[4]):
+        assert dwell["sweep"]["sweep_scans"] > 100
+        assert dwell["sweep"]["points"] > 10_000
+    assert replies[0]["beacons"] == 1  # b sees a at the start
 
 
 def test_a_command_sent_again_gets_the_same_reply(tmp_path: Path) -> None:

@@ -115,6 +115,10 @@ def test_a_live_mission_completes_and_batch_reproduces_it(reference: Path, tmp_p
     loop = report["mission_loop"]
     assert loop["stop_reason"] == "station budget (4) spent"
     assert loop["dwells"] >= 8
+    for robot in ("a", "b"):  # every dwell's sweep assembled on board, a beacon seen in each
+        on_board = loop["on_board"][robot]
+        assert on_board["sweeps"] == on_board["dwells"] == loop["dwells"]
+        assert on_board["beacons"] >= loop["dwells"] - 2
     for k, robot in enumerate(("a", "b")):
         disk = robot_dirs(reference) / robot / "lms.cap"
         assert (reference / "live" / robot / "lms.cap").read_bytes() == disk.read_bytes()
