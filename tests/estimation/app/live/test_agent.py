@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -178,3 +179,85 @@ def test_injected_faults_drop_duplicate_and_reorder(tmp_path: Path) -> None:
     assert len(keys) > len(set(keys))  # some twice
     seqs = [int(k.rsplit("/", 1)[1]) for k in keys]
     assert seqs != sorted(seqs)  # some out of order
+
+
+class FakeQuery:
+    """A query as the agent's queryables receive it."""
+
+    def __init__(self, parameters: dict[str, str] | None = None) -> None:
+        self.parameters = parameters or {}
+        self.key_expr = "coopmap/essex_lab/robot/b/store"
+        self.replies: list[bytes] = []
+        self.errors: list[bytes] = []
+
+    def __enter__(self) -> FakeQuery:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        pass
+
+    def reply(self, key: str, data: bytes) -> None:
+        self.replies.append(data)
+
+    def reply_err(self, data: bytes) -> None:
+        self.errors.append(data)
+
+
+def test_the_store_info_and_clock_queries(tmp_path: Path) -> None:
+    robot, _ = agent(tmp_path / "b")
+    before = FakeQuery()
+    robot._serve_store(before)
+    assert before.errors == [b"store: nothing recorded yet"]
+    clock = FakeQuery()
+    robot._serve_clock(clock)
+    assert clock.errors == [b"clock: no mission run yet"]
+    robot._command(command(0))
+    served = FakeQuery({"from": "1", "to": "2"})
+    robot._serve_store(served)
+    assert [decode_chunk(d).seq for d in served.replies] == [1, 2]
+    bad = FakeQuery({"from": "one"})
+    robot._serve_store(bad)
+    assert bad.errors == [b"store: ?from=A;to=B with integers"]
+    info = FakeQuery()
+    robot._serve_info(info)
+    assert json.loads(info.replies[0]) == {
+        "robot": "b", "header": {**HEADER, "robot": "b"}, "run": "run1", "done": 0,
+        "next_seq": robot.store.next_seq,  # type: ignore[union-attr]
+    }  # fmt: skip
+    robot._serve_clock(clock)
+    assert json.loads(clock.replies[0])["t_s"] == pytest.approx(31.3, abs=0.1)
+
+
+def test_malformed_command_payloads_are_answered_with_an_error(tmp_path: Path) -> None:
+    robot, _ = agent(tmp_path / "b")
+
+    class Payload:
+        def __init__(self, data: bytes) -> None:
+            self.data = data
+
+        def to_bytes(self) -> bytes:
+            return self.data
+
+    queries = []
+    for data in [b"not json", b"[1]", b'{"run": "r", "seq": 0}']:
+        query = FakeQuery()
+        query.payload = Payload(data)  # type: ignore[attr-defined]
+        queries.append(query)
+        robot.commands.put(query)
+    worker = threading.Thread(target=robot.run)
+    worker.start()
+    _wait_until(lambda: all(q.errors for q in queries))
+    robot.stop.set()
+    worker.join(5)
+    assert robot.rejected == 3
+    assert [q.errors[0].split(b":")[0] for q in queries] == [b"command"] * 3
+    assert all(not q.replies for q in queries)
+
+
+def _wait_until(predicate: Any, timeout_s: float = 10.0) -> None:
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
