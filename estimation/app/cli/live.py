@@ -9,6 +9,7 @@ from typing import Annotated, Any
 import typer
 
 from estimation.app.cli.common import ConfigOption, cli_errors, make_console
+from estimation.app.cli.mission import ViewHostOption, ViewOption, ViewPortOption, live_view
 from estimation.app.config import ConfigError
 
 MissionArgument = Annotated[
@@ -112,6 +113,9 @@ def base(
     join_timeout: Annotated[
         float, typer.Option(min=1.0, help="How long to wait for every robot to join (s).")
     ] = 60.0,
+    view: ViewOption = False,
+    view_port: ViewPortOption = 8765,
+    view_host: ViewHostOption = "127.0.0.1",
     config: ConfigOption = None,
 ) -> None:
     """The base station: runs the mission loop with the robots on the network, rebuilds the
@@ -120,8 +124,10 @@ def base(
     from estimation.app.resources import resolve_builtin
 
     path = resolve_builtin("missions", mission)
-    result = run_base(BaseOptions(path, out, state, listen, _overrides(config), join_timeout),
-                      say=_say)  # fmt: skip
+    options = BaseOptions(path, out, state, listen, _overrides(config), join_timeout)
+    with live_view(view, view_host, view_port) as foxglove:
+        observe = None if foxglove is None else foxglove.publish_loop
+        result = run_base(options, say=_say, observe=observe)
     print_live(result.loop, out)
 
 
@@ -164,6 +170,8 @@ def live(
             "emulator on a pseudo-terminal and the real driver.",
         ),
     ] = False,
+    view: ViewOption = False,
+    view_port: ViewPortOption = 8765,
     config: ConfigOption = None,
 ) -> None:
     """The base and one simulated robot agent per robot as processes on this machine, over
@@ -178,7 +186,8 @@ def live(
     path = resolve_builtin("missions", mission)
     spec = load_mission(path)
     mission_config(spec, _overrides(config), str(path))  # a bad --config fails here, once
-    options = LiveOptions(path, out, spec.robot_names(), port, config, seed, emulate=emulate)
+    options = LiveOptions(path, out, spec.robot_names(), port, config, seed, emulate=emulate,
+                          view_port=view_port if view else None)  # fmt: skip
     supervisor = Supervisor(options, say=_say)
     _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "
          f"{', '.join(spec.robot_names())}; logs in {supervisor.logs}/")  # fmt: skip

@@ -104,7 +104,8 @@ class Publications:
         self.queryable.undeclare()
 
 
-def run_base(options: BaseOptions, say: Say | None = None) -> LoopResult:
+def run_base(options: BaseOptions, say: Say | None = None,
+             observe: Callable[[MissionLoop], None] | None = None) -> LoopResult:  # fmt: skip
     """Run the mission with its robots on the network; resume from the checkpoint if there is
     one. The dataset as the base rebuilt it, with the result in ``result/``, replaces
     ``options.out``; the checkpoint is removed once that is done."""
@@ -130,8 +131,13 @@ def run_base(options: BaseOptions, say: Say | None = None) -> LoopResult:
                              command_timeout_s=options.command_timeout_s,
                              join_timeout_s=options.join_timeout_s)  # fmt: skip
         with replace_directory(options.out, "dataset") as work:
-            loop = MissionLoop(fleet, spec, config, work, progress=say,
-                               observe=lambda lp: publications.publish_loop(lp, fleet))  # fmt: skip
+
+            def publish(lp: MissionLoop) -> None:
+                publications.publish_loop(lp, fleet)
+                if observe is not None:
+                    observe(lp)  # a Foxglove live view (coopmap base --view)
+
+            loop = MissionLoop(fleet, spec, config, work, progress=say, observe=publish)
             try:
                 reason = loop.run()
             except BaseException:

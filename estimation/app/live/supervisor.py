@@ -55,6 +55,8 @@ class LiveOptions:
     restarts: int = 5  # per robot
     #: The robots' LMS 200 telegrams go through the device emulator on a pty and the driver.
     emulate: bool = False
+    #: The base serves a Foxglove live view on this loopback port (None: no view).
+    view_port: int | None = None
 
 
 def _command(*args: str) -> list[str]:
@@ -92,6 +94,8 @@ class Supervisor:
         o = self.options
         args = ["base", str(o.mission), "--out", str(o.out), "--listen", self.endpoint,
                 "--state", str(default_state(o.out)), *self._common()]  # fmt: skip
+        if o.view_port is not None:
+            args += ["--view", "--view-port", str(o.view_port)]
         self.base = self._spawn("base", args)
 
     def _start_robot(self, robot: str) -> None:

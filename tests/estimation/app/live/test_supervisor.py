@@ -31,6 +31,7 @@ from estimation.app.live.supervisor import (
 from estimation.app.live.wire import decode_json
 from estimation.app.resources import resolve_builtin
 from sensors.trajio import read_tum
+from tests.estimation.app.ros.test_live_view import typestore
 
 pytestmark = pytest.mark.slow
 
@@ -264,9 +265,39 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     assert not out.exists()
     assert _commands_logged(out) >= 5  # the checkpoint stayed
     assert (robot_dirs(out) / "a" / "commands.jsonl").exists()
-    second = subprocess.run(command, capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
-    assert second.returncode == 0, second.stderr[-2000:]
-    assert "coopmap base: station budget (4) spent" in second.stdout
+    # resumed, and watched in Foxglove: the base serves its live view while it flies
+    view_port = free_port()
+    second = subprocess.Popen([*command, "--view", "--view-port", str(view_port)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        client = _foxglove(view_port)
+        try:
+            client.subscribe({"/map"})
+            _, data = client.message("/map")
+        finally:
+            client.close()
+        stdout, stderr = second.communicate(timeout=RUN_TIMEOUT_S)
+    finally:
+        if second.poll() is None:
+            second.kill()
+            second.wait()
+    grid = typestore().deserialize_cdr(data, "nav_msgs/msg/OccupancyGrid")
+    assert grid.info.width > 10
+    assert second.returncode == 0, stderr[-2000:]
+    assert "coopmap base: station budget (4) spent" in stdout
     clean, resumed = _poses(reference / "result"), _poses(out / "result")
     for robot in ("a", "b"):
         assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
+
+
+def _foxglove(port: int) -> Any:
+    """A Foxglove WebSocket client of the base's live view, once it listens."""
+    from tests.estimation.app.ros.test_live_view import FoxgloveClient
+
+    deadline = time.monotonic() + 60.0
+    while True:
+        try:
+            return FoxgloveClient(port)
+        except OSError:
+            assert time.monotonic() < deadline, "the live view never listened"
+            time.sleep(0.2)
