@@ -44,6 +44,7 @@ __all__ = [
     "CaptureStream",
     "CaptureWriter",
     "DecodeSummary",
+    "capture_head",
     "decode_stream",
     "describe_event",
 ]
@@ -60,6 +61,12 @@ MAX_RECORD_GAP_S = 86400.0
 
 class CaptureError(SensorError):
     """A capture file is unreadable or malformed; the message names the file."""
+
+
+def capture_head(header: dict[str, Any]) -> bytes:
+    """A capture file's first two lines: the magic and the JSON header (records follow)."""
+    meta = {"format": "coopmap lms capture", **header}
+    return MAGIC + json.dumps(meta, sort_keys=True).encode("utf-8") + b"\n"
 
 
 class CaptureWriter:
@@ -79,8 +86,7 @@ class CaptureWriter:
                 f"{self.partial}: a recording that was cut short is there (readable as a "
                 f"capture); rename or remove it before recording to {self.path.name}"
             ) from None
-        meta = {"format": "coopmap lms capture", "started_unix_s": time.time(), **(header or {})}
-        self._file.write(MAGIC + json.dumps(meta, sort_keys=True).encode("utf-8") + b"\n")
+        self._file.write(capture_head({"started_unix_s": time.time(), **(header or {})}))
         self.bytes_written = 0
         self.records = 0
 

@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from estimation.app.cli.common import ConfigOption, JsonOption, cli_errors, make_console
-from estimation.app.config import ConfigError
+from estimation.app.cli.common import (
+    ConfigOption,
+    JsonOption,
+    cli_errors,
+    make_console,
+    option_overrides,
+)
 
 if TYPE_CHECKING:
     from estimation.app.calibration import BeaconResult, MirrorResult
@@ -26,12 +31,6 @@ OutOption = Annotated[
         "--out", "-o", help="Fragment file to write (or update); without it, print the fragment."
     ),
 ]
-
-
-def _overrides(config: Path | None) -> dict[str, Any] | None:
-    from sensors.yamlio import read_yaml_mapping
-
-    return read_yaml_mapping(config, ConfigError) if config is not None else None
 
 
 def _finish(result: MirrorResult | BeaconResult, out: Path | None, json_out: bool,
@@ -74,7 +73,7 @@ def mirror(
 
     if out is not None:
         check_fragment_target(out)
-    overrides = _overrides(config)
+    overrides = option_overrides(config)
     with make_console(stderr=True).status(f"calibrating the mirror from {dataset}…"):
         result = calibrate_mirror(dataset, robot, overrides)
     f, s, e = result.fit, result.start, result.estimate
@@ -116,7 +115,7 @@ def beacon(
 
     if out is not None:
         check_fragment_target(out)
-    overrides = _overrides(config)
+    overrides = option_overrides(config)
     with make_console(stderr=True).status(f"calibrating the beacon from {dataset}…"):
         result = calibrate_beacon(dataset, overrides, height_search_m=height_search_m)
     o, s, e = result.offset, result.start, result.estimate

@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, ParamSpec, TypeVar
+from typing import Annotated, Any, ParamSpec, TypeVar
 
 import typer
 from rich.console import Console
@@ -65,6 +65,13 @@ def cli_errors(command: Callable[P, R]) -> Callable[P, R]:
             raise typer.Exit(code=2) from None
 
     return wrapper
+
+
+def option_overrides(path: Path | None) -> dict[str, Any] | None:
+    """The --config file's YAML overrides (None without one); a bad file is a ConfigError."""
+    from sensors.yamlio import read_yaml_mapping
+
+    return read_yaml_mapping(path, ConfigError) if path is not None else None
 
 
 def option_config(path: Path | None) -> Config:

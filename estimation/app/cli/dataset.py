@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from estimation.app.cli.common import JsonOption, cli_errors, make_console
+from estimation.app.cli.common import JsonOption, cli_errors, make_console, option_overrides
 
 dataset_app = typer.Typer(help="Dataset folders: check, merge.", no_args_is_help=True)
 
@@ -65,11 +65,9 @@ def dataset_merge(
     ] = None,
 ) -> None:
     """Merge robots' recordings (coopmap record) into one dataset on the mission clock."""
-    from estimation.app.config import ConfigError
     from estimation.app.merge import merge_recordings
-    from sensors.yamlio import read_yaml_mapping
 
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     result = merge_recordings(
         recordings, out, mission=mission, robots=robot, overrides=overrides,
         mission_start_ref_s=mission_start, tolerance_s=tolerance,

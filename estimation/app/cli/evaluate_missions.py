@@ -10,8 +10,13 @@ from rich.console import Console
 from rich.measure import Measurement
 from rich.table import Table
 
-from estimation.app.cli.common import ConfigOption, cli_errors, make_console, option_config
-from estimation.app.config import ConfigError
+from estimation.app.cli.common import (
+    ConfigOption,
+    cli_errors,
+    make_console,
+    option_config,
+    option_overrides,
+)
 
 __all__ = ["evaluate_missions", "format_ate", "print_evaluation"]
 
@@ -35,11 +40,10 @@ def evaluate_missions(
     """Generate buildings (seeds SEED … SEED+N−1), fly a mission in each (simulate, batch,
     evaluate), print one row per building and the distribution; writes evaluation.json."""
     from estimation.app.evaluation.missions import check_arguments, evaluate_missions
-    from sensors.yamlio import read_yaml_mapping
 
     check_arguments(worlds, seed, robots, rooms, stations)
     option_config(config)  # a bad --config is one line before any work
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     err = make_console(stderr=True)
     with err.status(f"evaluating missions in {worlds} buildings…", spinner="dots") as status:
         document = evaluate_missions(

@@ -8,19 +8,13 @@ from typing import Annotated, Any
 
 import typer
 
-from estimation.app.cli.common import ConfigOption, cli_errors, make_console
+from estimation.app.cli.common import ConfigOption, cli_errors, make_console, option_overrides
 from estimation.app.cli.mission import ViewHostOption, ViewOption, ViewPortOption, live_view
 from estimation.app.config import ConfigError
 
 MissionArgument = Annotated[
     Path, typer.Argument(help="A mission YAML file or a built-in mission name.")
 ]
-
-
-def _overrides(config: Path | None) -> dict[str, Any] | None:
-    from sensors.yamlio import read_yaml_mapping
-
-    return read_yaml_mapping(config, ConfigError) if config is not None else None
 
 
 def _say(text: str) -> None:
@@ -86,7 +80,7 @@ def robot(
         name,
         folder or Path("runs/robots") / f"{path.stem}-{name}",
         connect=connect,
-        overrides=_overrides(config),
+        overrides=option_overrides(config),
         seed=seed,
         faults=AgentFaults.parse(faults) if faults else None,
         clock_offset_s=clock_offset,
@@ -124,7 +118,7 @@ def base(
     from estimation.app.resources import resolve_builtin
 
     path = resolve_builtin("missions", mission)
-    options = BaseOptions(path, out, state, listen, _overrides(config), join_timeout)
+    options = BaseOptions(path, out, state, listen, option_overrides(config), join_timeout)
     with live_view(view, view_host, view_port) as foxglove:
         observe = None if foxglove is None else foxglove.publish_loop
         result = run_base(options, say=_say, observe=observe)
@@ -185,7 +179,7 @@ def live(
 
     path = resolve_builtin("missions", mission)
     spec = load_mission(path)
-    mission_config(spec, _overrides(config), str(path))  # a bad --config fails here, once
+    mission_config(spec, option_overrides(config), str(path))  # a bad --config fails here, once
     options = LiveOptions(path, out, spec.robot_names(), port, config, seed, emulate=emulate,
                           view_port=view_port if view else None)  # fmt: skip
     supervisor = Supervisor(options, say=_say)

@@ -16,6 +16,7 @@ from estimation.app.cli.common import (
     cli_errors,
     make_console,
     option_config,
+    option_overrides,
 )
 from estimation.app.cli.ros import McapOption, print_export
 from estimation.app.config import ConfigError
@@ -64,9 +65,8 @@ def demo(
     from estimation.app.resources import resolve_builtin
     from estimation.app.sim.demo import DEFAULT_POSE, DEFAULT_WORLD, run_demo
     from estimation.app.sim.simulate import run_simulation
-    from sensors.yamlio import read_yaml_mapping
 
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     cfg = option_config(config)
     started = time.perf_counter()
     err = make_console(stderr=True)
@@ -125,9 +125,8 @@ def simulate(
     from estimation.app.resources import resolve_builtin
     from estimation.app.sim.simulate import run_simulation
     from sensors.sim.mission import load_mission
-    from sensors.yamlio import read_yaml_mapping
 
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     path = resolve_builtin("missions", mission)
     if view:
         spec = load_mission(path)
@@ -194,9 +193,8 @@ def batch(
 ) -> None:
     """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
     from estimation.app.pipeline import run_batch
-    from sensors.yamlio import read_yaml_mapping
 
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     check_mcap(mcap)
     with live_view(view, view_host, view_port) as live:
         err = make_console(stderr=True)
@@ -312,9 +310,8 @@ def isam(
 ) -> None:
     """Incremental iSAM2 over the same data, event by event, with checkpoints."""
     from estimation.app.pipeline import run_isam
-    from sensors.yamlio import read_yaml_mapping
 
-    overrides = read_yaml_mapping(config, ConfigError) if config is not None else None
+    overrides = option_overrides(config)
     check_mcap(mcap)
     with live_view(view, view_host, view_port) as live:
         err = make_console(stderr=True)

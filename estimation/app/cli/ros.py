@@ -7,7 +7,13 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from estimation.app.cli.common import cli_errors, file_size, make_console, option_config
+from estimation.app.cli.common import (
+    cli_errors,
+    file_size,
+    make_console,
+    option_config,
+    option_overrides,
+)
 
 if TYPE_CHECKING:
     from estimation.app.ros.export import ExportSummary
@@ -191,17 +197,15 @@ def import_bag(
 ) -> None:
     """Import a ROS bag as a dataset: coopmap's own bags losslessly, others from their
     LaserScans and odometry (dwells found where the robots stood still)."""
-    from estimation.app.config import ConfigError
     from estimation.app.ros.dwells import DwellRule
     from estimation.app.ros.importer import ImportOptions
     from estimation.app.ros.importer import import_bag as run_import
-    from sensors.yamlio import read_yaml_mapping
 
     if config is not None:
         option_config(config)  # a bad configuration is refused before the bag is read
     options = ImportOptions(
         topics=tuple(t.strip() for text in topics or [] for t in text.split(",") if t.strip()),
-        overrides=read_yaml_mapping(config, ConfigError) if config is not None else None,
+        overrides=option_overrides(config),
         robots=_pairs(robot, "--robot"),
         starts=_starts(start),
         reference=reference,

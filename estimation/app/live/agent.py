@@ -60,7 +60,7 @@ from estimation.app.live.wire import (
 from estimation.app.mission.fleet import Goal, SimulatedFleet
 from sensors.atomic import write_bytes_atomic, write_text_atomic
 from sensors.errors import OutputError
-from sensors.lms200.capture import MAGIC as CAPTURE_MAGIC
+from sensors.lms200.capture import capture_head
 from sensors.sim.mission import ChangesSpec
 from sensors.trajio import tum_text
 
@@ -152,9 +152,8 @@ class RobotStore:
     def chunks(self, first: int, last: int) -> list[tuple[int, str, bytes]]:
         """The stored chunks with seq in [first, last] as (seq, stream, bytes)."""
         out = []
-        for path in sorted((self.folder / "chunks").iterdir()):
-            seq = int(path.stem)
-            if first <= seq <= last and seq < self.next_seq:
+        for seq in range(max(0, first), min(last, self.next_seq - 1) + 1):
+            for path in (self.folder / "chunks").glob(f"{seq:08d}.*"):
                 out.append((seq, path.suffix[1:], path.read_bytes()))
         return out
 
@@ -203,8 +202,7 @@ def sweep_summary(config: Config, header: dict[str, Any], records: list[tuple[fl
 
 def capture_bytes(header: dict[str, Any], lms_payloads: list[bytes]) -> bytes:
     """A capture file's bytes: its header and the records of the lms chunks in order."""
-    text = json.dumps({"format": "coopmap lms capture", **header}, sort_keys=True)
-    return CAPTURE_MAGIC + text.encode() + b"\n" + b"".join(lms_payloads)
+    return capture_head(header) + b"".join(lms_payloads)
 
 
 @dataclass

@@ -393,9 +393,10 @@ class NetworkFleet(Fleet):
         """Hold every chunk of ``robot`` up to ``last``: wait briefly for the publications,
         then query the robot's disk for what is missing."""
         deadline = time.monotonic() + 0.5
+        held = self._expected[robot]  # every chunk up to here is held already
         while True:
             with self._lock:
-                missing = [s for s in range(last + 1) if s not in self.chunks[robot]]
+                missing = [s for s in range(held + 1, last + 1) if s not in self.chunks[robot]]
                 if not missing:
                     return
                 left = deadline - time.monotonic()

@@ -83,6 +83,7 @@ class EmulatedLms:
             self._taps.clear()  # the set-up's replies are not the mission's capture
             self._read = 0
         self._error: BaseException | None = None
+        self.scans_read = 0
         self._reader = threading.Thread(target=self._run, name="lms-driver", daemon=True)
         self._reader.start()
 
@@ -97,9 +98,11 @@ class EmulatedLms:
             self._lock.notify_all()
 
     def _run(self) -> None:
+        """Read the stream as a recorder does: the driver's tap takes every byte; the scans
+        the driver decodes are counted (its plausibility rules dropped the others)."""
         try:
             for _ in self.driver.scans():
-                pass
+                self.scans_read += 1
         except BaseException as exc:  # the agent reports it at the next telegram
             self._error = exc
 

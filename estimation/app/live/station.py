@@ -66,39 +66,30 @@ class Publications:
         self.session.put(f"{self.key}/{name}", data)
 
     def publish_loop(self, loop: MissionLoop, fleet: NetworkFleet) -> None:
-        from estimation.app.ros.export import Trajectory, result_messages
+        from estimation.app.rig import cut_ceiling_band
+        from estimation.app.ros.messages import RosMessages, stamp_ns
         from estimation.posegraph.keys import split_key
+        from mapping.errors import MapError
 
         fleet.fused()
-        poses: dict[str, dict[int, list[float]]] = {}
-        for key, pose in loop.estimate.items():
+        poses: dict[str, dict[str, list[float]]] = {}
+        for key, pose in sorted(loop.estimate.items()):
             robot, index = split_key(key)
-            poses.setdefault(robot, {})[index] = [round(float(v), 6) for v in pose]
-        self.put("estimate", encode_json({
-            "mission_s": loop.now_s,
-            "poses": {r: {str(i): p for i, p in sorted(v.items())} for r, v in poses.items()},
-        }))  # fmt: skip
+            poses.setdefault(robot, {})[str(index)] = [round(float(v), 6) for v in pose]
+        self.put("estimate", encode_json({"mission_s": loop.now_s, "poses": poses}))
         self.put("state", encode_json({
             "mission_s": loop.now_s, "dwells": loop.dwells, "stations": len(loop.steps),
             "online": sorted(fleet.online), "robots": fleet.robots,
             "index": dict(loop.index),
         }))  # fmt: skip
-        import numpy as np
-
-        trajectories = {
-            r: Trajectory(sorted(v), np.full(len(v), loop.now_s),
-                          np.array([v[i] for i in sorted(v)]), None)
-            for r, v in poses.items()
-        }  # fmt: skip
-        if trajectories:
-            if self._ros is None:
-                from estimation.app.ros.messages import RosMessages
-
-                self._ros = RosMessages()
-            messages, _ = result_messages(self._ros, loop.config, trajectories, loop.map.grid)
-            for m in messages:
-                if m.topic == "/map":  # nav_msgs/OccupancyGrid, CDR as on a ROS 2 link
-                    self.put("map", self._ros.serialize(m.message))
+        try:
+            ceiling = cut_ceiling_band(loop.map.grid, loop.config)
+        except MapError:
+            return  # nothing observed in the band yet
+        if self._ros is None:
+            self._ros = RosMessages()
+        grid = self._ros.occupancy_grid(stamp_ns(loop.now_s), "map", ceiling)
+        self.put("map", self._ros.serialize(grid))  # nav_msgs/OccupancyGrid, CDR as on ROS 2
 
     def close(self) -> None:
         self.queryable.undeclare()

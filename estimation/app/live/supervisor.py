@@ -9,7 +9,6 @@ stops everything with SIGINT: the base's checkpoint and the robots' disks stay, 
 
 from __future__ import annotations
 
-import os
 import signal
 import socket
 import subprocess
@@ -186,7 +185,3 @@ class Supervisor:
         if self.base is not None:
             out["base"] = self.base.pid
         return out
-
-
-def kill(pid: int, sig: int = signal.SIGKILL) -> None:
-    os.kill(pid, sig)

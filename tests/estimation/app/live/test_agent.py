@@ -34,21 +34,25 @@ class FakeSession:
 
     def __init__(self) -> None:
         self.published: list[tuple[str, bytes]] = []
+        self.declared = 0
+        self.undeclared = 0
 
     def put(self, key: str, data: bytes) -> None:
         self.published.append((key, data))
 
     def declare_queryable(self, key: str, handler: Any) -> Any:
+        self.declared += 1
         return self
 
     def liveliness(self) -> Any:
         return self
 
     def declare_token(self, key: str) -> Any:
+        self.declared += 1
         return self
 
     def undeclare(self) -> None:
-        pass
+        self.undeclared += 1
 
 
 def simulate() -> SimulatedRobot:
@@ -189,12 +193,13 @@ class FakeQuery:
         self.key_expr = "coopmap/essex_lab/robot/b/store"
         self.replies: list[bytes] = []
         self.errors: list[bytes] = []
+        self.finalized = False
 
     def __enter__(self) -> FakeQuery:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        pass
+        self.finalized = True  # the querier's get returns now
 
     def reply(self, key: str, data: bytes) -> None:
         self.replies.append(data)
@@ -226,6 +231,15 @@ def test_the_store_info_and_clock_queries(tmp_path: Path) -> None:
     }  # fmt: skip
     robot._serve_clock(clock)
     assert json.loads(clock.replies[0])["t_s"] == pytest.approx(31.3, abs=0.1)
+    assert all(q.finalized for q in (before, clock, served, bad, info))
+
+
+def test_closing_the_agent_undeclares_what_it_declared(tmp_path: Path) -> None:
+    robot, session = agent(tmp_path / "b")
+    assert session.declared == 5  # cmd, store, info, clock queryables and the liveliness token
+    robot.close()
+    assert session.undeclared == session.declared
+    assert robot.stop.is_set()
 
 
 def test_malformed_command_payloads_are_answered_with_an_error(tmp_path: Path) -> None:
@@ -252,6 +266,7 @@ def test_malformed_command_payloads_are_answered_with_an_error(tmp_path: Path) -
     assert robot.rejected == 3
     assert [q.errors[0].split(b":")[0] for q in queries] == [b"command"] * 3
     assert all(not q.replies for q in queries)
+    assert all(q.finalized for q in queries)
 
 
 def _wait_until(predicate: Any, timeout_s: float = 10.0) -> None:

@@ -3,6 +3,7 @@ stamps as the simulator's, cut into reads as the line delivers them."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -31,6 +32,11 @@ def test_a_dwell_through_the_pty_is_the_simulators_dwell() -> None:
             robot.apply("dwell", {"fields": {}})
         sent, _, _ = direct.recorded()
         read, _, _ = emulated.recorded()
+        lms = emulated.lms
+        deadline = time.monotonic() + 5.0
+        while lms.scans_read < len(sent) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert lms.scans_read == len(sent)  # the driver decoded every telegram it read
     finally:
         emulated.close()
     assert b"".join(d for _, d in read) == b"".join(d for _, d in sent)
