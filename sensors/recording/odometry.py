@@ -236,7 +236,8 @@ class OdometryCounts:
 
 
 class OdometryReader:
-    """Reads a source in a thread: poses to a TUM file, every line to a raw log.
+    """Reads a source in a thread: poses to a TUM file (and ``on_pose``), every line to a raw
+    log (either file may be None).
 
     ``clock`` says how poses are stamped: ``"arrival"`` (the local clock at arrival; the line's
     own stamp is only logged), or ``"source"`` (the line's stamp, kept as it is; its clock is
@@ -246,13 +247,14 @@ class OdometryReader:
     def __init__(
         self,
         source: OdometrySource,
-        tum_path: Path,
-        raw_path: Path,
+        tum_path: Path | None,
+        raw_path: Path | None,
         *,
         clock: str = "source",
         local_clock: Callable[[], float] = time.monotonic,
         retry_s: float = 0.5,
         flush_s: float = 1.0,
+        on_pose: Callable[[float, float, float, float], None] | None = None,
     ) -> None:
         if clock not in ("arrival", "source"):
             raise RecordingError(f"odometry clock must be 'arrival' or 'source', got {clock!r}")
@@ -262,10 +264,13 @@ class OdometryReader:
         self.retry_s = retry_s
         self.flush_s = flush_s
         self.counts = OdometryCounts()
-        self._tum = TumAppender(tum_path)
-        self._raw_partial = raw_path.with_name(raw_path.name + ".partial")
+        self.on_pose = on_pose
+        self._tum = TumAppender(tum_path) if tum_path is not None else None
         self._raw_path = raw_path
-        self._raw: TextIO | None = open(self._raw_partial, "x", encoding="utf-8")  # noqa: SIM115
+        self._raw: TextIO | None = None
+        if raw_path is not None:
+            self._raw_partial = raw_path.with_name(raw_path.name + ".partial")
+            self._raw = open(self._raw_partial, "x", encoding="utf-8")  # noqa: SIM115
         self._buffer = b""
         self._last_t = -math.inf
         self._stop = threading.Event()
@@ -309,8 +314,8 @@ class OdometryReader:
 
     def _line(self, raw: bytes, arrival_s: float) -> None:
         text = raw.decode("ascii", errors="replace")
-        assert self._raw is not None
-        self._raw.write(f"{arrival_s:.9f}\t{text[:MAX_LINE_BYTES]}\n")
+        if self._raw is not None:
+            self._raw.write(f"{arrival_s:.9f}\t{text[:MAX_LINE_BYTES]}\n")
         stripped = text.strip()
         if not stripped or stripped.startswith("#"):
             return
@@ -324,11 +329,15 @@ class OdometryReader:
             self.counts.malformed += 1
             return
         self._last_t = t_s
-        self._tum.write(t_s, pose[1], pose[2], pose[3])
+        if self._tum is not None:
+            self._tum.write(t_s, pose[1], pose[2], pose[3])
+        if self.on_pose is not None:
+            self.on_pose(t_s, pose[1], pose[2], pose[3])
         self.counts.poses += 1
 
     def _flush(self) -> None:
-        self._tum.flush()
+        if self._tum is not None:
+            self._tum.flush()
         if self._raw is not None:
             self._raw.flush()
 
@@ -337,8 +346,9 @@ class OdometryReader:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         self.source.close()
-        self._tum.close()
-        if self._raw is not None:
+        if self._tum is not None:
+            self._tum.close()
+        if self._raw is not None and self._raw_path is not None:
             self._raw.close()
             self._raw = None
             os.replace(self._raw_partial, self._raw_path)

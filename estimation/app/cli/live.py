@@ -61,20 +61,56 @@ def robot(
     clock_drift_ppm: Annotated[
         float, typer.Option(help="Simulated robots: their clock's drift (ppm).")
     ] = 0.0,
+    port: Annotated[
+        str | None,
+        typer.Option(
+            help="A real robot: its LMS 200's serial port (/dev/ttyUSB0) or pyserial URL."
+        ),
+    ] = None,
+    odometry: Annotated[
+        str | None,
+        typer.Option(
+            help="A real robot: its base's odometry lines (tcp://HOST:PORT, "
+            "serial://PATH?baud=N or a device path; docs/recording.md)."
+        ),
+    ] = None,
+    drive: Annotated[
+        str | None,
+        typer.Option(
+            help="A real robot: its base's goal endpoint (tcp://HOST:PORT; docs/live.md)."
+        ),
+    ] = None,
+    move_timeout: Annotated[
+        float, typer.Option(min=1.0, help="A real robot: how long a goal may take (s).")
+    ] = 600.0,
     config: ConfigOption = None,
 ) -> None:
     """A robot agent: records to its own disk, publishes numbered chunks, executes the base's
-    goals (docs/live.md)."""
+    goals (docs/live.md). The robot is simulated (--simulate, --emulate) or real (--port,
+    --odometry, --drive)."""
     from estimation.app.live.agent import AgentFaults
-    from estimation.app.live.station import run_robot
+    from estimation.app.live.station import HardwareOptions, run_hardware_robot, run_robot
     from estimation.app.resources import resolve_builtin
 
-    if not (simulate or emulate):
-        raise ConfigError(
-            "coopmap robot: only simulated robots exist so far (--simulate, --emulate); a "
-            "robot agent on a real LMS 200 port is not built yet"
-        )
+    real = [o for o, v in (("--port", port), ("--odometry", odometry), ("--drive", drive)) if v]
+    if real and (simulate or emulate):
+        raise ConfigError(f"coopmap robot: {', '.join(real)} name a real robot; --simulate and "
+                          "--emulate a simulated one: choose one")  # fmt: skip
+    if not real and not (simulate or emulate):
+        raise ConfigError("coopmap robot: a real robot needs --port, --odometry and --drive; "
+                          "a simulated one --simulate or --emulate")  # fmt: skip
     path = resolve_builtin("missions", mission)
+    if real:
+        if not (port and odometry and drive):
+            missing = [o for o in ("--port", "--odometry", "--drive") if o not in real]
+            raise ConfigError(f"coopmap robot: a real robot needs {', '.join(missing)} too")
+        if faults or seed is not None or clock_offset or clock_drift_ppm:
+            raise ConfigError("coopmap robot: --faults, --seed and --clock-* are for "
+                              "simulated robots")  # fmt: skip
+        run_hardware_robot(path, name, folder or Path("runs/robots") / f"{path.stem}-{name}",
+                           HardwareOptions(port, odometry, drive, move_timeout), connect=connect,
+                           overrides=option_overrides(config), say=_say)  # fmt: skip
+        return
     run_robot(
         path,
         name,

@@ -59,7 +59,7 @@ from estimation.app.live.wire import (
 )
 from estimation.app.mission.fleet import Goal, SimulatedFleet
 from sensors.atomic import write_bytes_atomic, write_text_atomic
-from sensors.errors import OutputError
+from sensors.errors import OutputError, SensorError
 from sensors.lms200.capture import capture_head
 from sensors.sim.mission import ChangesSpec
 from sensors.trajio import tum_text
@@ -81,7 +81,7 @@ class RobotStore:
     """A robot's own disk copy of what it recorded (see the module's docstring)."""
 
     def __init__(self, folder: Path, mission: str, run: str, robot: str,
-                 header: dict[str, Any]) -> None:  # fmt: skip
+                 header: dict[str, Any], *, keep_uncommitted: bool = False) -> None:  # fmt: skip
         self.folder, self.run = Path(folder), run
         meta = {"format": "coopmap robot store", "mission": mission, "run": run, "robot": robot}
         existing = self._existing(self.folder)
@@ -102,8 +102,12 @@ class RobotStore:
         self.header: dict[str, Any] = json.loads((self.folder / "store.json").read_text())["header"]
         self.log = read_journal(self.folder / "commands.jsonl")
         self.next_seq = int(self.log[-1]["next_seq"]) if self.log else 0
-        for path in (self.folder / "chunks").iterdir():  # a command cut short left these
-            if int(path.stem) >= self.next_seq:
+        for path in sorted((self.folder / "chunks").iterdir()):
+            if int(path.stem) < self.next_seq:
+                continue
+            if keep_uncommitted:  # a real robot's recording: kept, whatever the command did
+                self.next_seq = int(path.stem) + 1
+            else:  # a simulated command cut short left these: it is done again
                 path.unlink()
 
     @classmethod
@@ -142,6 +146,7 @@ class RobotStore:
     def put(self, chunk: Chunk) -> bytes:
         data = encode_chunk(chunk)
         write_bytes_atomic(self.chunk_path(chunk.seq, chunk.stream), data)
+        self.next_seq = max(self.next_seq, chunk.seq + 1)
         return data
 
     def commit(self, entry: dict[str, Any]) -> None:
@@ -219,6 +224,15 @@ class SimulatedRobot:
     #: emulator on a pty and the real driver (:mod:`estimation.app.live.emulated`).
     emulate: Config | None = None
     lms: EmulatedLms | None = None
+    #: The simulator records only while a command runs: nothing to publish in between.
+    streaming = False
+
+    @property
+    def config(self) -> Config:
+        return self.fleet.config
+
+    def state(self) -> dict[str, Any]:
+        return self.fleet.state()
 
     def start_sensors(self) -> None:
         """After a replay: the emulated sensor, set up as on a robot, from where it stands."""
@@ -317,14 +331,22 @@ class AgentFaults:
 
 
 class RobotAgent:
-    """The agent process's work (see the module's docstring); ``run`` until ``stop``."""
+    """The agent process's work (see the module's docstring); ``run`` until ``stop``.
+
+    ``make_robot`` gives the robot the commands go to: a :class:`SimulatedRobot`, or a robot on
+    real hardware (:class:`~estimation.app.live.hardware.HardwareRobot`), whose recording between
+    commands is cut every ``slice_s`` into chunks, written and published as it comes.
+    """
 
     def __init__(self, session: Any, mission: str, robot: str, folder: Path,
-                 header: dict[str, Any], simulate: Callable[[], SimulatedRobot],
+                 header: dict[str, Any], make_robot: Callable[[], Any],
                  faults: AgentFaults | None = None,
-                 log: Callable[[str], None] | None = None) -> None:  # fmt: skip
+                 log: Callable[[str], None] | None = None, *,
+                 slice_s: float = 1.0) -> None:  # fmt: skip
         self.session, self.mission, self.name = session, mission, robot
-        self.folder, self.simulate = Path(folder), simulate
+        self.folder, self.make_robot, self.slice_s = Path(folder), make_robot, slice_s
+        self._emit_lock = threading.RLock()
+        self._dwell: list[tuple[float, bytes]] | None = None
         self.faults = faults or AgentFaults()
         self._fault_rng = random.Random(self.faults.seed)
         self._held: list[tuple[str, bytes]] = []
@@ -333,12 +355,15 @@ class RobotAgent:
         self.commands: queue.Queue[Any] = queue.Queue()
         self.rejected = 0
         self.store: RobotStore | None = None
-        self.robot: SimulatedRobot | None = None
+        self.robot: Any = None
         self.header = {**header, "robot": robot}
+        self.hardware = not header.get("simulated", True)
         run = RobotStore.existing_run(self.folder, mission, robot)
         if run is not None:
             self._open(run)
         base = f"{mission_key(mission)}/robot/{robot}"
+        self._slicer = threading.Thread(target=self._slices, name="slices", daemon=True)
+        self._slicer.start()
         self._declared = [
             session.declare_queryable(f"{base}/cmd", self.commands.put),
             session.declare_queryable(f"{base}/store", self._serve_store),
@@ -349,13 +374,21 @@ class RobotAgent:
 
     def _open(self, run: str) -> None:
         """The store of ``run`` (an earlier run's is replaced), the simulation replayed."""
-        self.store = RobotStore(self.folder, self.mission, run, self.name, self.header)
-        self.header = self.store.header
-        if self.robot is not None:
-            self.robot.close()
-        self.robot = self.simulate()
-        self.robot.replay(self.store.log)
-        self.robot.start_sensors()
+        with self._emit_lock:
+            self.store = RobotStore(self.folder, self.mission, run, self.name, self.header,
+                                    keep_uncommitted=self.hardware)  # fmt: skip
+            self.header = self.store.header
+            if self.robot is not None:
+                self.robot.close()
+            self.robot = None
+            robot = self.make_robot()
+            robot.replay(self.store.log)
+            try:
+                robot.start_sensors()
+            except SensorError as exc:  # a real robot's port or link: said, and tried again
+                robot.close()
+                raise WireError(f"robot {self.name}: {exc}") from None
+            self.robot = robot
         if self.store.log:
             self.say(f"resumed run {run} after command {self.store.log[-1]['seq']} "
                      f"(next chunk {self.store.next_seq})")  # fmt: skip
@@ -384,11 +417,13 @@ class RobotAgent:
     def _serve_info(self, query: Any) -> None:
         store = self.store
         with query:
+            links = getattr(self.robot, "links", None)
             query.reply(query.key_expr, encode_json({
                 "robot": self.name, "header": self.header,
                 "run": None if store is None else store.run,
                 "done": len(store.log) - 1 if store is not None else -1,
                 "next_seq": 0 if store is None else store.next_seq,
+                **({"links": links()} if links is not None else {}),
             }))  # fmt: skip
 
     def _serve_clock(self, query: Any) -> None:
@@ -430,7 +465,7 @@ class RobotAgent:
             or (not isinstance(run, str) or not run.isalnum())
         ):
             raise WireError("command: needs run (str), seq (int), op (str) and args (object)")
-        if self.store is None or self.store.run != run:
+        if self.store is None or self.store.run != run or self.robot is None:
             self._open(run)  # a new run of the mission: this robot starts afresh
         store, robot = self.store, self.robot
         assert store is not None
@@ -441,37 +476,66 @@ class RobotAgent:
         if seq > len(log):
             return {"seq": seq, "need": len(log)}  # the base sends the ones we lack first
         began = robot.now_s
+        if op == "dwell":
+            self._dwell = []  # the dwell's telegrams, whichever chunks they go into
         try:
             reply = {"seq": seq, "op": op, "start_s": began, **robot.apply(op, args)}
-        except (TypeError, ValueError, KeyError) as exc:
+        except (TypeError, ValueError, KeyError, WireError) as exc:
+            with self._emit_lock:
+                self._dwell = None
+            if isinstance(exc, WireError):
+                raise
             raise WireError(f"command {seq} ({op}): {exc}") from None
-        records, times, poses = robot.recorded()
-        outgoing = []
-        event = {"seq": seq, "op": op, "t_s": round(robot.now_s, 6), "ok": reply["ok"]}
-        summary = None
-        if op == "dwell":
-            window = (float(robot.local(began)), float(robot.local(robot.now_s)))
-            summary = sweep_summary(robot.fleet.config, self.header, records, *window)
-            reply["sweep"] = {k: v for k, v in summary.items() if k != "beacons"}
-            reply["beacons"] = len(summary.get("beacons", []))
+        with self._emit_lock:
+            dwell, self._dwell = self._dwell, None
+            records, times, poses = robot.recorded()
+            event = {"seq": seq, "op": op, "t_s": round(robot.now_s, 6), "ok": reply["ok"]}
+            summary = None
+            if op == "dwell":
+                window = (float(robot.local(began)), float(robot.local(robot.now_s)))
+                summary = sweep_summary(robot.config, self.header, [*(dwell or []), *records],
+                                        *window)  # fmt: skip
+                reply["sweep"] = {k: v for k, v in summary.items() if k != "beacons"}
+                reply["beacons"] = len(summary.get("beacons", []))
+            outgoing = self._chunks(store, records, times, poses, [
+                ("event", encode_json(event) + b"\n"),
+                ("summary", encode_json(summary)) if summary is not None else None,
+            ])  # fmt: skip
+            reply.update(t_s=robot.now_s, index=reply.get("index", robot.index(self.name)),
+                         last_chunk=store.next_seq - 1)  # fmt: skip
+            store.commit({"seq": seq, "op": op, "args": args, "reply": reply,
+                          "state": robot.state(), "next_seq": store.next_seq})  # fmt: skip
+            for key, data in outgoing:
+                self._publish(key, data)
+        return reply
+
+    def _chunks(self, store: RobotStore, records: list[tuple[float, bytes]], times: np.ndarray,
+                poses: np.ndarray,
+                more: list[tuple[str, bytes] | None]) -> list[tuple[str, bytes]]:  # fmt: skip
+        """Write ``records``, the odometry and ``more`` as the next chunks on disk; their keys
+        and bytes, to publish."""
         parts = [("lms", encode_lms(records)) if records else None,
                  ("odom", encode_odometry(times, poses)) if len(times) else None,
-                 ("event", encode_json(event) + b"\n"),
-                 ("summary", encode_json(summary)) if summary is not None else None]  # fmt: skip
-        next_seq = store.next_seq
+                 *more]  # fmt: skip
+        outgoing = []
         for stream, payload in filter(None, parts):
-            chunk = Chunk(self.mission, run, self.name, stream, next_seq, payload, time.time())
-            outgoing.append((chunk_key(self.mission, self.name, stream, next_seq),
-                             store.put(chunk)))  # fmt: skip
-            next_seq += 1
-        reply.update(t_s=robot.now_s, index=reply.get("index", robot.index(self.name)),
-                     last_chunk=next_seq - 1)  # fmt: skip
-        state = robot.fleet.state()
-        store.commit({"seq": seq, "op": op, "args": args, "reply": reply, "state": state,
-                           "next_seq": next_seq})  # fmt: skip
-        for key, data in outgoing:
-            self._publish(key, data)
-        return reply
+            seq = store.next_seq
+            chunk = Chunk(self.mission, store.run, self.name, stream, seq, payload, time.time())
+            outgoing.append((chunk_key(self.mission, self.name, stream, seq), store.put(chunk)))
+        return outgoing
+
+    def _slices(self) -> None:
+        """A real robot's recording between (and during) commands, cut every ``slice_s``."""
+        while not self.stop.wait(self.slice_s):
+            with self._emit_lock:
+                robot, store = self.robot, self.store
+                if robot is None or store is None or not robot.streaming:
+                    continue
+                records, times, poses = robot.recorded()
+                if self._dwell is not None:
+                    self._dwell.extend(records)
+                for key, data in self._chunks(store, records, times, poses, []):
+                    self._publish(key, data)
 
     def _publish(self, key: str, data: bytes) -> None:
         faults, rng = self.faults, self._fault_rng
@@ -488,6 +552,7 @@ class RobotAgent:
 
     def close(self) -> None:
         self.stop.set()
+        self._slicer.join(timeout=2.0)
         for entity in reversed(self._declared):
             with contextlib.suppress(Exception):
                 entity.undeclare()

@@ -60,6 +60,8 @@ __all__ = ["BaseState", "NetworkCounts", "NetworkFleet"]
 Say = Callable[[str], None]
 #: How long one command may take a robot (ray casting a dwell's sweep) before it is sent again.
 COMMAND_TIMEOUT_S = 120.0
+#: Clock exchanges per command with a real robot (the one with the shortest round trip is kept).
+_EXCHANGES = 4
 
 
 class BaseState:
@@ -85,13 +87,16 @@ class BaseState:
                 raise OutputError(f"{self.folder}: the checkpoint of mission "
                                   f"{meta.get('mission')!r}, not {mission!r}")  # fmt: skip
             self.run: str = meta["run"]
+            self.started_unix_s = float(meta.get("started_unix_s", time.time()))
             self.resumed = True
         else:
             self.folder.mkdir(parents=True, exist_ok=True)
             marker.write_text(json.dumps({"kind": self.KIND, "pid": os.getpid()}) + "\n")
             self.run = secrets.token_hex(4)
-            write_text_atomic(self.folder / "state.json",
-                              json.dumps({"mission": mission, "run": self.run}) + "\n")  # fmt: skip
+            self.started_unix_s = time.time()
+            write_text_atomic(self.folder / "state.json", json.dumps({
+                "mission": mission, "run": self.run, "started_unix_s": self.started_unix_s,
+            }) + "\n")  # fmt: skip
             self.resumed = False
         self.log = read_journal(self.folder / "commands.jsonl")
 
@@ -204,6 +209,24 @@ class NetworkFleet(Fleet):
             ),
         ]
         self._wait_for_robots(join_timeout_s)
+        kinds = {bool(h.get("simulated", True)) for h in self.headers.values()}
+        if len(kinds) > 1:
+            real = sorted(r for r, h in self.headers.items() if not h.get("simulated", True))
+            raise WireError(f"mission {name}: robots {', '.join(real)} are real and the "
+                            "others simulated; a mission runs on one clock: all real or all "
+                            "simulated")  # fmt: skip
+        #: Real robots: the mission runs on the base's wall clock (seconds since the mission
+        #: began), and every robot stamp is mapped onto it by the clock exchanges. Simulated
+        #: robots: on the simulator's mission time, which the robots' replies carry.
+        self.wall = kinds == {False}
+        if self.wall and mission.changes is not None:
+            raise WireError(f"mission {name}: its changes step moves a simulated world's "
+                            "objects; real robots cannot (remove changes:)")  # fmt: skip
+
+    def base_now(self) -> float:
+        """The base's clock on a real mission: seconds since the mission began (unix time, so
+        that a restarted base goes on with the same clock)."""
+        return time.time() - self.state.started_unix_s
 
     # -- what arrives --------------------------------------------------------------------------
 
@@ -323,6 +346,9 @@ class NetworkFleet(Fleet):
                 thread.start()
             for thread in threads:
                 thread.join()
+            if self.wall:
+                for robot, reply in replies.items():
+                    self._onto_base_clock(robot, reply)
             self.state.commit({"seq": seq, "op": op, "args": args, "replies": replies})
         for robot, reply in replies.items():
             self._expected[robot] = max(self._expected[robot], int(reply["last_chunk"]))
@@ -351,19 +377,38 @@ class NetworkFleet(Fleet):
                 continue
             self._complete(robot, int(reply["last_chunk"]))
             self.counts.latency_s.setdefault(robot, []).append(time.monotonic() - began)
-            sample = self._exchange(robot, float(reply["t_s"]))
+            # A real clock: the exchange with the shortest round trip of a few.
+            exchanges = [self._exchange(robot, float(reply["t_s"]))
+                         for _ in range(_EXCHANGES if self.wall else 1)]  # fmt: skip
+            sample = min(filter(None, exchanges), key=lambda s: s.round_trip_s, default=None)
             if sample is not None:
                 reply["clock_sample"] = sample.as_list()
             replies[robot] = reply
             return
 
+    def _onto_base_clock(self, robot: str, reply: dict[str, Any]) -> None:
+        """A real robot's reply times (its clock) → the base's, with the exchanges so far and
+        the reply's own; the robot's values stay beside them."""
+        samples = list(self.clock_samples[robot])
+        if "clock_sample" in reply:
+            samples.append(ClockSample(*reply["clock_sample"]))
+        if not samples:
+            raise WireError(f"robot {robot} did not answer a clock exchange: its stamps cannot "
+                            "be put on the base's clock")  # fmt: skip
+        mapping = fit_mapping(samples)
+        for name in ("t_s", "start_s"):
+            if name in reply:
+                reply[f"robot_{name}"] = reply[name]
+                reply[name] = float(mapping.to_local(float(reply[name])))
+
     def _exchange(self, robot: str, now_s: float) -> ClockSample | None:
         """One clock exchange with ``robot`` after a command: the robot's clock read between
         two readings of the base's. In simulation the base's clock is the mission's, which
-        stands still between commands (``now_s``): the exchange has no round trip."""
-        t1 = now_s
+        stands still between commands (``now_s``): the exchange has no round trip. On a real
+        mission both readings are of the base's wall clock, and the round trip is real."""
+        t1 = self.base_now() if self.wall else now_s
         reply = self._query_json(f"{self.key}/robot/{robot}/clock", None, 5.0)
-        t4 = now_s
+        t4 = self.base_now() if self.wall else now_s
         value = None if reply is None else reply.get("t_s")
         if not isinstance(value, int | float) or isinstance(value, bool):
             return None
@@ -422,11 +467,8 @@ class NetworkFleet(Fleet):
         replies = self._command("move", args)
         reply = replies[goal.robot]
         before = self.index[goal.robot]
-        if not reply["ok"]:
-            self.refused.append(str(reply.get("reason")))
-            return Status(goal.robot, False, before, reply.get("reason"))
         index = int(reply["index"])
-        if index != before:
+        if index != before:  # a real robot whose goal failed may have moved all the same
             self.events.append({
                 "t_s": round(float(reply["t_s"]), 6), "event": "move", "robot": goal.robot,
                 "from_index": before, "to_index": index,
@@ -434,6 +476,9 @@ class NetworkFleet(Fleet):
             })  # fmt: skip
             self.index[goal.robot] = index
             self.t = float(reply["t_s"])
+        if not reply["ok"]:
+            self.refused.append(str(reply.get("reason")))
+            return Status(goal.robot, False, index, reply.get("reason"))
         return Status(goal.robot, True, index)
 
     def dwell(self, **fields: Any) -> None:

@@ -21,7 +21,14 @@ from estimation.app.live.wire import WireError, encode_json, mission_key
 from estimation.app.mission.loop import LoopResult, MissionLoop
 from sensors.atomic import check_replaceable, replace_directory, write_text_atomic
 
-__all__ = ["BaseOptions", "default_state", "run_base", "run_robot"]
+__all__ = [
+    "BaseOptions",
+    "HardwareOptions",
+    "default_state",
+    "run_base",
+    "run_hardware_robot",
+    "run_robot",
+]
 
 Say = Callable[[str], None]
 
@@ -183,13 +190,83 @@ def run_robot(
               "emulated": emulate, "started_unix_s": time.time()}  # fmt: skip
     session = open_session(connect=[connect])
     agent = RobotAgent(session, mission_path.stem, robot, folder, header, simulate, faults, say)
+    _serve(agent, session, f"robot {robot} of mission {mission_path.stem} up, connecting to "
+           f"{connect}", say, stop)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class HardwareOptions:
+    """A robot agent on real hardware: its LMS 200's serial port (or pyserial URL), the
+    robot base's odometry stream and goal endpoint (docs/live.md, "A real robot")."""
+
+    port: str
+    odometry: str
+    drive: str
+    move_timeout_s: float = 600.0
+    slice_s: float = 1.0
+
+
+def run_hardware_robot(
+    mission_path: Path,
+    robot: str,
+    folder: Path,
+    hardware: HardwareOptions,
+    *,
+    connect: str = DEFAULT_ENDPOINT,
+    overrides: dict[str, Any] | None = None,
+    say: Say | None = None,
+    stop: threading.Event | None = None,
+) -> None:
+    """One robot of the mission on real hardware as an agent process, until ``stop`` (or
+    SIGTERM / SIGINT when run as a process). The links are opened before the agent joins:
+    a port, stream or endpoint that cannot be reached is a one-line error."""
+    from estimation.app.live.hardware import HardwareRobot
+    from estimation.app.mission.simulated import mission_starts
+    from estimation.app.rig import driver_from_config
+    from estimation.app.sim.simulate import mission_config
+    from sensors.recording.drive import DriveClient
+    from sensors.recording.odometry import open_source
+    from sensors.sim.mission import load_mission
+
+    say = say or (lambda text: None)
+    spec = load_mission(mission_path)
+    config = mission_config(spec, overrides, str(mission_path))
+    if robot not in spec.robot_names():
+        raise WireError(f"robot {robot!r} is not in mission {mission_path.stem} "
+                        f"(robots {', '.join(spec.robot_names())})")  # fmt: skip
+    start = mission_starts(spec)[robot]
+    # Every link once now: one line says which cannot be reached, before the agent joins.
+    probe = driver_from_config(config, hardware.port)
+    probe.open()
+    probe.close()
+    for link in (open_source(hardware.odometry), DriveClient(hardware.drive)):
+        link.connect()
+        link.close()
+
+    def make_robot() -> HardwareRobot:
+        lms = driver_from_config(config, hardware.port)
+        return HardwareRobot(config, robot, start, lms, open_source(hardware.odometry),
+                             DriveClient(hardware.drive),
+                             move_timeout_s=hardware.move_timeout_s)  # fmt: skip
+
+    header = {"baud_rate": config.serial.baud_rate, "simulated": False, "port": hardware.port,
+              "started_unix_s": time.time()}  # fmt: skip
+    session = open_session(connect=[connect])
+    agent = RobotAgent(session, mission_path.stem, robot, folder, header, make_robot, None, say,
+                       slice_s=hardware.slice_s)  # fmt: skip
+    _serve(agent, session, f"robot {robot} of mission {mission_path.stem} up on "
+           f"{hardware.port}, connecting to {connect}", say, stop)  # fmt: skip
+
+
+def _serve(agent: RobotAgent, session: Any, hello: str, say: Say,
+           stop: threading.Event | None) -> None:  # fmt: skip
     stop = stop or threading.Event()
     if threading.current_thread() is threading.main_thread():
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: stop.set())
-    worker = threading.Thread(target=agent.run, name=f"robot-{robot}", daemon=True)
+    worker = threading.Thread(target=agent.run, name=f"robot-{agent.name}", daemon=True)
     worker.start()
-    say(f"robot {robot} of mission {mission_path.stem} up, connecting to {connect}")
+    say(hello)
     try:
         while not stop.wait(0.1):
             if not worker.is_alive():

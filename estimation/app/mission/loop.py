@@ -261,8 +261,8 @@ class MissionLoop:
         ))  # fmt: skip
         if not status.ok:
             self.refused.append(status.reason or f"robot {robot}: goal refused")
-        else:
-            self.index[robot] = status.index
+        # A real robot that moved before its goal failed stands at a new pose all the same.
+        self.index[robot] = status.index
         return status.ok
 
     # -- the mission ---------------------------------------------------------------------------
