@@ -486,13 +486,14 @@ class RobotAgent:
             if isinstance(exc, WireError):
                 raise
             raise WireError(f"command {seq} ({op}): {exc}") from None
+        ended = robot.now_s  # a real robot's clock runs on while the reply is made
         with self._emit_lock:
             dwell, self._dwell = self._dwell, None
             records, times, poses = robot.recorded()
-            event = {"seq": seq, "op": op, "t_s": round(robot.now_s, 6), "ok": reply["ok"]}
+            event = {"seq": seq, "op": op, "t_s": round(ended, 6), "ok": reply["ok"]}
             summary = None
             if op == "dwell":
-                window = (float(robot.local(began)), float(robot.local(robot.now_s)))
+                window = (float(robot.local(began)), float(robot.local(ended)))
                 summary = sweep_summary(robot.config, self.header, [*(dwell or []), *records],
                                         *window)  # fmt: skip
                 reply["sweep"] = {k: v for k, v in summary.items() if k != "beacons"}
@@ -501,7 +502,7 @@ class RobotAgent:
                 ("event", encode_json(event) + b"\n"),
                 ("summary", encode_json(summary)) if summary is not None else None,
             ])  # fmt: skip
-            reply.update(t_s=robot.now_s, index=reply.get("index", robot.index(self.name)),
+            reply.update(t_s=ended, index=reply.get("index", robot.index(self.name)),
                          last_chunk=store.next_seq - 1)  # fmt: skip
             store.commit({"seq": seq, "op": op, "args": args, "reply": reply,
                           "state": robot.state(), "next_seq": store.next_seq})  # fmt: skip

@@ -484,6 +484,8 @@ class NetworkFleet(Fleet):
     def dwell(self, **fields: Any) -> None:
         replies = self._command("dwell", {"fields": fields})
         end = max(float(r["t_s"]) for r in replies.values())
+        if self.wall:  # every robot stands still from when the last one began its dwell
+            self.t = max(self.t, max(float(r["start_s"]) for r in replies.values()))
         self.events.append({"t_s": round(self.t, 6), "event": "dwell", "end_s": round(end, 6),
                             "poses": dict(self.index), **fields})  # fmt: skip
         self.t = end

@@ -26,10 +26,12 @@ def test_a_goal_is_driven_along_its_waypoints_and_answered() -> None:
         drive = client(base)
         result = drive.go(7, (3.0, 2.0, math.pi / 2), [(2.0, 3.0)], timeout_s=10.0)
         drive.close()
-    assert result.ok and result.reason is None
+    assert result.ok
+    assert result.reason is None
     assert base.pose == pytest.approx((3.0, 2.0, math.pi / 2), abs=1e-6)
     [(goal_id, pose, waypoints)] = base.goals
-    assert goal_id == 7 and waypoints == [(2.0, 3.0)]
+    assert goal_id == 7
+    assert waypoints == [(2.0, 3.0)]
     assert pose == pytest.approx((3.0, 2.0, math.pi / 2), abs=1e-6)  # sent to the µm, µrad
     assert drive.counts.arrived == 1
 
@@ -66,7 +68,8 @@ def test_a_stop_request_ends_the_wait() -> None:
         threading.Timer(0.2, stop.set).start()
         result = drive.go(1, (50.0, 0.0, 0.0), [], timeout_s=30.0, stop=stop)
         drive.close()
-    assert not result.ok and "stopped" in (result.reason or "")
+    assert not result.ok
+    assert "stopped" in (result.reason or "")
     assert result.seconds < 2.0
 
 
@@ -121,7 +124,8 @@ def test_the_base_streams_odometry_in_the_line_format(tmp_path: Path) -> None:
         reader.start()
         time.sleep(0.3)
         counts = reader.close()
-    assert counts.poses >= 5 and counts.malformed == 0
+    assert counts.poses >= 5
+    assert counts.malformed == 0
     assert poses[-1][1:] == pytest.approx((1.0, -1.0, 0.25))
     assert not list(tmp_path.iterdir())  # no files without paths
 

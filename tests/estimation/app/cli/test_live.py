@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import json
+import socket
 from pathlib import Path
 
+import numpy as np
+
 from estimation.app.live.base import BaseState
+from sensors.recording.drive import SimulatedBase
 from tests.estimation.app.cli.clirun import assert_one_line_error, run
 
 
@@ -16,7 +20,45 @@ def test_a_robot_not_in_the_mission_is_refused(tmp_path: Path) -> None:
 
 def test_a_robot_needs_a_source(tmp_path: Path) -> None:
     assert_one_line_error(*run("robot", "essex_lab", "--name", "a", "--dir", tmp_path / "a"),
-                          r"only simulated robots exist so far")  # fmt: skip
+                          r"a real robot needs --port, --odometry and --drive; a simulated one "
+                          r"--simulate or --emulate")  # fmt: skip
+
+
+def _closed_port() -> int:
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        return int(server.getsockname()[1])
+
+
+def test_a_real_robots_options_are_checked_in_one_line(tmp_path: Path) -> None:
+    real = ["robot", "essex_lab", "--name", "a", "--dir", tmp_path / "a"]
+    assert_one_line_error(*run(*real, "--port", "/dev/ttyUSB0", "--simulate"),
+                          r"--port name a real robot; --simulate and --emulate a simulated one")  # fmt: skip
+    assert_one_line_error(*run(*real, "--port", "/dev/ttyUSB0"),
+                          r"a real robot needs --odometry, --drive too")  # fmt: skip
+    links = ["--odometry", "tcp://127.0.0.1:1", "--drive", "tcp://127.0.0.1:1"]
+    assert_one_line_error(*run(*real, "--port", "/dev/ttyUSB0", *links, "--seed", "3"),
+                          r"--faults, --seed and --clock-\* are for simulated robots")  # fmt: skip
+    assert_one_line_error(*run(*real, "--port", tmp_path / "no-such-tty", *links),
+                          r"cannot open .*no-such-tty")  # fmt: skip
+    assert not (tmp_path / "a").exists()  # nothing written before every link answered
+
+
+def test_a_real_robots_unreachable_links_are_one_line(tmp_path: Path) -> None:
+    from sensors.lms200.emulator import Lms200Emulator
+
+    with Lms200Emulator(lambda t, n: (np.full(n, 4.0), np.zeros(n, dtype=bool))) as emulator:
+        port = emulator.device_path
+        real = ["robot", "essex_lab", "--name", "a", "--dir", tmp_path / "a", "--port", port]
+        closed = f"tcp://127.0.0.1:{_closed_port()}"
+        assert_one_line_error(*run(*real, "--odometry", closed, "--drive", closed),
+                              r"odometry tcp://127.0.0.1:\d+: cannot connect")  # fmt: skip
+        with SimulatedBase() as base:
+            odometry = f"tcp://127.0.0.1:{base.odometry_port}"
+            assert_one_line_error(*run(*real, "--odometry", odometry, "--drive", closed),
+                                  r"drive tcp://127.0.0.1:\d+: cannot connect")  # fmt: skip
+            assert_one_line_error(*run(*real, "--odometry", odometry, "--drive", "udp://x:1"),
+                                  r"drive 'udp://x:1': expected tcp://HOST:PORT")  # fmt: skip
+    assert not (tmp_path / "a").exists()
 
 
 def test_bad_endpoints_are_one_line(tmp_path: Path) -> None:
