@@ -19,11 +19,14 @@ import numpy as np
 from estimation.app.config import ConfigError, SearchConfig
 from estimation.app.rig import search_params
 from estimation.search.exhaustive import (
+    MAX_PDF_POSES,
     SearchResult,
     WindowStep,
     search,
     windowed_search,
 )
+from estimation.search.lattice import pose_lattice, yaw_lattice
+from estimation.search.pyramid import TiledResult, search_coarse_to_fine
 from mapping.band import Band
 from mapping.formats.pgm import read_band_pgm
 from sensors.atomic import atomic_path
@@ -33,9 +36,10 @@ __all__ = ["Localization", "localize_files", "render_pdf"]
 
 @dataclass(frozen=True)
 class Localization:
-    """A localization: the search's answer, the windows it took, and the two grids."""
+    """A localization: the search's answer (the whole PDF, or coarse to fine on a map whose
+    whole PDF does not fit), the windows it took, and the two grids."""
 
-    result: SearchResult
+    result: SearchResult | TiledResult
     windows: tuple[WindowStep, ...]
     dominant: bool
     map_band: Band
@@ -55,6 +59,14 @@ class Localization:
             "dominant": self.dominant,
             "windows_m": [w.side_m for w in self.windows],
             "poses_searched": self.result.poses,
+            "poses_at_full_resolution": (
+                self.result.poses_evaluated
+                if isinstance(self.result, TiledResult)
+                else self.result.poses
+            ),
+            "unevaluated_mass": (
+                self.result.unevaluated_mass if isinstance(self.result, TiledResult) else 0.0
+            ),
         }
 
 
@@ -73,10 +85,12 @@ def localize_files(
 ) -> Localization:
     """Localize the scan grid in the map grid.
 
-    Without a prior the whole map is searched. With ``prior`` (x_m, y_m, yaw_deg) a square
-    window of side ``window_m`` (default ``config.window_m``) centred on the prior position is
-    searched, doubling until the peak is dominant, the map is covered or the side reaches
-    ``config.max_window_m``; every rotation is searched either way (the prior yaw is not used).
+    Without a prior the whole map is searched: every pose, or coarse to fine
+    (``search_coarse_to_fine``) when the whole PDF would exceed ``MAX_PDF_POSES``. With
+    ``prior`` (x_m, y_m, yaw_deg) a square window of side ``window_m`` (default
+    ``config.window_m``) centred on the prior position is searched, doubling until the peak is
+    dominant, the map is covered or the side reaches ``config.max_window_m``; every rotation
+    is searched either way (the prior yaw is not used).
     """
     if window_m is not None and prior is None:
         raise ConfigError("--window-m needs --prior: the window is centred on the prior position")
@@ -87,7 +101,13 @@ def localize_files(
     params = search_params(config)
     started = time.perf_counter()
     if prior is None:
-        result = search(scan_band, map_band, params)
+        x_m, y_m, _ = pose_lattice(scan_band, map_band)
+        poses = len(x_m) * len(y_m) * len(yaw_lattice(params.angular_resolution_rad))
+        result: SearchResult | TiledResult
+        if poses > MAX_PDF_POSES:
+            result = search_coarse_to_fine(scan_band, map_band, params)
+        else:
+            result = search(scan_band, map_band, params)
         windows: tuple[WindowStep, ...] = ()
         dominant = result.is_dominant(params.dominance_ratio)
     else:
@@ -141,7 +161,7 @@ def render_pdf(localization: Localization, path: Path) -> Path:
     ax_map.set_title("map (white: free; blue-grey: unknown), scan placed at the best pose")
     ax_map.legend(loc="upper right", markerscale=4)
 
-    marginal = result.prob.sum(axis=0, dtype=np.float64)
+    marginal = result.position_marginal()
     step_x, step_y = result.x_m[1] - result.x_m[0], result.y_m[1] - result.y_m[0]
     extent = (
         result.x_m[0] - step_x / 2,

@@ -164,6 +164,10 @@ class SearchResult:
     def is_dominant(self, dominance_ratio: float) -> bool:
         return self.peak_ratio >= dominance_ratio
 
+    def position_marginal(self) -> np.ndarray:
+        """(Y, X) float64: the probability of each position, summed over rotations."""
+        return np.asarray(self.prob.sum(axis=0, dtype=np.float64))
+
 
 def result_from_scores(
     scores: np.ndarray,

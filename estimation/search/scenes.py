@@ -18,7 +18,20 @@ from estimation.errors import EstimationError
 from mapping.band import Band
 from sensors.geometry import se2
 
-__all__ = ["Scene", "corridor", "distinctive_room", "local_view", "random_building", "rasterise"]
+__all__ = [
+    "Scene",
+    "corridor",
+    "distinctive_room",
+    "local_view",
+    "office_floor",
+    "random_building",
+    "rasterise",
+]
+
+#: Grids with more cells than this are rasterised tile by tile, each against the geometry near it.
+_TILED_CELLS = 250_000
+#: Cells along a tile's side.
+_TILE = 100
 
 
 @dataclass(frozen=True)
@@ -48,6 +61,29 @@ class Scene:
             hit |= (np.abs(along) <= sx / 2) & (np.abs(across) <= sy / 2)
         return hit
 
+    def near(self, lo: np.ndarray, hi: np.ndarray) -> Scene:
+        """The walls and boxes whose occupied area reaches into the rectangle [lo, hi]."""
+        half = self.wall_thickness_m / 2.0
+        w = self.walls
+        keep_w = (
+            (np.minimum(w[:, 0], w[:, 2]) - half <= hi[0])
+            & (np.maximum(w[:, 0], w[:, 2]) + half >= lo[0])
+            & (np.minimum(w[:, 1], w[:, 3]) - half <= hi[1])
+            & (np.maximum(w[:, 1], w[:, 3]) + half >= lo[1])
+        )
+        b = self.boxes
+        reach = 0.5 * np.hypot(b[:, 2], b[:, 3])  # a box lies within its half diagonal
+        keep_b = np.all(
+            (b[:, :2] - reach[:, None] <= hi) & (b[:, :2] + reach[:, None] >= lo), axis=1
+        )
+        return Scene(
+            walls=w[keep_w].reshape(-1, 4),
+            wall_thickness_m=self.wall_thickness_m,
+            boxes=b[keep_b].reshape(-1, 5),
+            known_lo=self.known_lo,
+            known_hi=self.known_hi,
+        )
+
     def inside(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(np.all((points >= self.known_lo) & (points <= self.known_hi), axis=1))
 
@@ -67,9 +103,30 @@ def rasterise(
 ) -> Band:
     """A band of ``shape`` (rows, cols) cells in a grid frame whose pose in the scene is
     ``T_scene_grid`` (x, y, yaw): each cell's occupancy is the share of its s×s sub-samples that
-    fall on occupied geometry; a cell is known when its centre lies in the known rectangle."""
+    fall on occupied geometry; a cell is known when its centre lies in the known rectangle.
+
+    Large grids are rasterised tile by tile against the geometry that reaches each tile: the same
+    tests on the same points, so the same band."""
     rows, cols = shape
     lower = np.asarray(lower_xy, dtype=float)
+    if rows * cols > _TILED_CELLS:
+        occupancy = np.zeros(shape)
+        known = np.zeros(shape, dtype=bool)
+        T = se2.matrix(np.asarray(T_scene_grid, dtype=float))
+        for r0 in range(0, rows, _TILE):
+            for c0 in range(0, cols, _TILE):
+                size = (min(_TILE, rows - r0), min(_TILE, cols - c0))
+                tile_lower = lower + resolution_m * np.array([c0, r0])
+                corners = tile_lower + resolution_m * np.array(
+                    [[0, 0], [size[1], 0], [0, size[0]], [size[1], size[0]]]
+                )
+                placed = corners @ T[:2, :2].T + T[:2, 2]
+                part = scene.near(placed.min(axis=0), placed.max(axis=0))
+                tile = rasterise(part, T_scene_grid, tile_lower, size, resolution_m,
+                                 supersample=supersample)  # fmt: skip
+                occupancy[r0 : r0 + size[0], c0 : c0 + size[1]] = tile.occupancy
+                known[r0 : r0 + size[0], c0 : c0 + size[1]] = tile.known
+        return Band(occupancy=occupancy, known=known, lower_xy=lower, resolution_m=resolution_m)
     sub = (np.arange(supersample) + 0.5) / supersample
     ys, xs = np.meshgrid(
         lower[1] + (np.arange(rows)[:, None] + sub[None, :]).ravel() * resolution_m,
@@ -166,6 +223,62 @@ def random_building(rng: np.random.Generator, size_m: float = 20.0) -> Scene:
             boxes.append(
                 [cx, cy, rng.uniform(1.0, 5.0), rng.uniform(0.2, 0.6), rng.uniform(0, math.pi)]
             )
+    return Scene(
+        walls=np.array(walls),
+        wall_thickness_m=0.2,
+        boxes=np.array(boxes).reshape(-1, 5),
+        known_lo=np.zeros(2),
+        known_hi=np.full(2, size_m),
+    )
+
+
+def office_floor(rng: np.random.Generator, size_m: float = 100.0, block_m: float = 12.0) -> Scene:
+    """A large square office floor: corridors 2–3 m wide every ``block_m`` (jittered) along both
+    axes; the blocks between them split into rooms by partitions, with a door from every room
+    onto a corridor; pillars, beams and ducts of random sizes in every block. No two places
+    alike, as ``random_building``, but its rooms stay room-sized however large the floor."""
+    walls: list[list[float]] = _box_walls(0.0, 0.0, size_m, size_m)
+    n = max(2, round(size_m / block_m))
+    corridors = []  # per axis: (centre, half width) of each corridor
+    for _ in range(2):
+        at = size_m * np.arange(1, n) / n + rng.uniform(-1.5, 1.5, n - 1)
+        corridors.append(np.column_stack([at, rng.uniform(1.0, 1.5, n - 1)]))
+    # Each axis's stretches between the crossing corridors (and the outer walls).
+    stretches = []
+    for axis in range(2):
+        c = corridors[axis]
+        stretches.append(np.column_stack([np.r_[0.0, c[:, 0] + c[:, 1]],
+                                          np.r_[c[:, 0] - c[:, 1], size_m]]))  # fmt: skip
+    door = 0.9
+    for axis in range(2):
+        for centre, half in corridors[axis]:
+            for a, b in stretches[1 - axis]:
+                for side in (-1.0, 1.0):  # a wall either side, a door in each
+                    at = centre + side * half
+                    d = rng.uniform(a + 0.3, max(a + 0.3, b - door - 0.3))
+                    for lo, hi in ((a, d), (d + door, b)):
+                        if hi - lo > 0.05:
+                            walls.append([at, lo, at, hi] if axis == 0 else [lo, at, hi, at])
+    boxes = []
+    for x0, x1 in stretches[0]:
+        for y0, y1 in stretches[1]:
+            # One or two partitions across the block, each with a door.
+            along = int(rng.integers(0, 2))
+            lo, hi = (x0, x1) if along == 0 else (y0, y1)
+            a, b = (y0, y1) if along == 0 else (x0, x1)
+            for _ in range(int(rng.integers(1, 3))):
+                at = rng.uniform(lo + 2.0, max(lo + 2.0, hi - 2.0))
+                d = rng.uniform(a + 0.3, max(a + 0.3, b - door - 0.3))
+                for p, q in ((a, d), (d + door, b)):
+                    if q - p > 0.05:
+                        walls.append([at, p, at, q] if along == 0 else [p, at, q, at])
+            for _ in range(int(rng.integers(3, 8))):
+                cx, cy = rng.uniform(x0 + 0.4, x1 - 0.4), rng.uniform(y0 + 0.4, y1 - 0.4)
+                if rng.random() < 0.4:
+                    boxes.append([cx, cy, 0.4, 0.4, 0.0])
+                else:
+                    boxes.append([cx, cy, rng.uniform(1.0, 4.0), rng.uniform(0.2, 0.6),
+                                  rng.uniform(0, math.pi)])  # fmt: skip
     return Scene(
         walls=np.array(walls),
         wall_thickness_m=0.2,

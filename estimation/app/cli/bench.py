@@ -104,18 +104,26 @@ def bench_search(
     config: ConfigOption = None,
     repeats: Annotated[int, typer.Option(min=1, help="Timed searches (median).")] = 5,
 ) -> None:
-    """Exhaustive search, 20 m × 20 m × 360 rotations, full PDF, against the per-pose loop."""
+    """Exhaustive search, 20 m × 20 m × 360 rotations, full PDF, against the per-pose loop;
+    coarse to fine on 100 m × 100 m, and beside the exhaustive search on 40 m × 40 m."""
     import json
+    import math
 
-    from estimation.app.bench.search import run_search_benchmark
+    from estimation.app.bench.search import run_coarse_to_fine_case, run_search_benchmark
     from estimation.app.rig import search_params
 
     cfg = option_config(config)
+    params = search_params(cfg.search)
+    resolution = cfg.search.resolution_m
     err = make_console(stderr=True)
-    with err.status("timing the search and the per-pose loop…", spinner="dots"):
-        r = run_search_benchmark(
-            search_params(cfg.search), cfg.search.resolution_m, repeats=repeats
-        )
+    with err.status("timing coarse to fine on 100 m × 100 m…", spinner="dots") as status:
+        # First, while the process is small: its peak RSS is then this case's.
+        large = run_coarse_to_fine_case(params, 100.0, 8.0, resolution, repeats=repeats)
+        status.update("coarse to fine beside the exhaustive search on 40 m × 40 m…")
+        both = run_coarse_to_fine_case(params, 40.0, 8.0, resolution, repeats=3, compare=True)
+        status.update("timing the search and the per-pose loop…")
+        r = run_search_benchmark(params, resolution, repeats=repeats)
+    r["coarse_to_fine"] = [large, both]
     if json_out:
         typer.echo(json.dumps(r))
         return
@@ -146,6 +154,29 @@ def bench_search(
             f"{c['best_pose_seconds_max'] * 1e3:7.1f}   {c['best_over_full']:.2f}× the full "
             f"search{'' if c['same_score'] else ' (DIFFERENT SCORE)'}"
         )
+    for c in r["coarse_to_fine"]:
+        side, poses = c["side_m"], c["poses"]
+        typer.echo(
+            f"  coarse to fine, {side:g} m × {side:g} m office floor, {c['radius_m']:g} m view "
+            f"({c['local_known_cells']:,} cells), {poses:,} poses: {c['seconds']:.3f} s median "
+            f"of {c['repeats']} (max {c['seconds_max']:.3f} s, first run {c['first_seconds']:.3f} "
+            f"s); peak memory {c['peak_numpy_bytes'] / 1e6:.0f} MB numpy, "
+            f"{c['peak_rss_bytes'] / 1e6:.0f} MB process RSS; F = {c['coarse_factor']}, "
+            f"{c['poses_evaluated']:,} poses at full resolution in {c['patches']} patches, "
+            f"unevaluated mass ≤ {c['unevaluated_mass']:.1e}\n"
+            f"    pose ({c['pose'][0]:.3f}, {c['pose'][1]:.3f}) m, "
+            f"{math.degrees(c['pose'][2]):.2f}° vs truth ({c['truth'][0]:.3f}, "
+            f"{c['truth'][1]:.3f}) m, {math.degrees(c['truth'][2]):.2f}°: "
+            f"{c['error_m'] * 100:.1f} cm, {c['error_deg']:.2f}°"
+        )
+        if "exhaustive_seconds" in c:
+            typer.echo(
+                f"    exhaustive search on the same lattice: {c['exhaustive_seconds']:.3f} s; "
+                f"same lattice pose: {'yes' if c['same_lattice_pose'] else 'NO'}; refined poses "
+                f"{c['pose_difference_m'] * 1e3:.3f} mm apart; exhaustive PDF's mass outside the "
+                f"evaluated poses {c['exhaustive_mass_outside']:.1e}, total variation "
+                f"{c['total_variation']:.1e}"
+            )
 
 
 @bench_app.command("graph")

@@ -67,6 +67,11 @@ def localize(
         else ", whole map"
     )
     verdict = "dominant" if found.dominant else "NOT dominant (ambiguous)"
+    if report["poses_at_full_resolution"] < report["poses_searched"]:
+        windows += (
+            f"; coarse to fine: {report['poses_at_full_resolution']:,} at full resolution, "
+            f"unevaluated mass ≤ {report['unevaluated_mass']:.1e}"
+        )
     console = make_console()
     console.print(
         f"coopmap localize: x={report['x_m']:.3f} m, y={report['y_m']:.3f} m, "

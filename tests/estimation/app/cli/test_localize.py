@@ -152,7 +152,8 @@ def test_window_outside_the_map_and_window_without_prior(files: tuple[Path, Path
 def test_a_map_too_large_to_search_whole_is_one_line_within_bounded_memory(
     tmp_path: Path,
 ) -> None:
-    """An 8,000 × 8,000 map_server map (64 MB): 23 G poses would need 86 GiB of scores."""
+    """An 8,000 × 8,000 map_server map (64 MB): 23 G poses, beyond even the coarse-to-fine
+    search's lattice (the whole PDF would need 86 GiB of scores)."""
     import tracemalloc
 
     n = 8000
@@ -171,7 +172,42 @@ def test_a_map_too_large_to_search_whole_is_one_line_within_bounded_memory(
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     assert_one_line_error(
-        code, err, r"would score 23,040,000,000 poses \(8000 × 8000 positions × 360 headings, "
-        r"85\.8 GiB\); at most 268,435,456 .*search a window around a prior"
+        code, err, r"would cover 23,040,000,000 poses \(8000 × 8000 positions × 360 headings\); "
+        r"at most 2,147,483,648 are searched coarse to fine: search a window around a prior"
     )  # fmt: skip
     assert peak < 0.9e9  # the file (64 MB), the band (512 + 64 MB), a mask (64 MB)
+
+
+def test_a_map_beyond_the_whole_pdf_is_localized_coarse_to_fine(tmp_path: Path) -> None:
+    """88 m × 88 m at 0.1 m and 1°: 279 M poses, more than the whole PDF holds (2^28). A 24 m
+    office floor lies in it; the rest of the map is unknown."""
+    from estimation.search.scenes import office_floor
+    from mapping.band import Band
+
+    rng = np.random.default_rng(5)
+    scene = office_floor(rng, 24.0)
+    part = rasterise(scene, np.zeros(3), (0.0, 0.0), (240, 240), 0.1)
+    n, at = 880, 300
+    occupancy, known = np.zeros((n, n)), np.zeros((n, n), dtype=bool)
+    occupancy[at : at + 240, at : at + 240] = part.occupancy
+    known[at : at + 240, at : at + 240] = part.known
+    write_band_pgm(tmp_path / "map.yaml", Band(occupancy=occupancy, known=known,
+                                              lower_xy=np.zeros(2), resolution_m=0.1))  # fmt: skip
+    truth = np.array([11.3, 13.9, math.radians(121.0)])
+    scan = local_view(scene, truth, 8.0, 0.1, rng, noise=0.1, drop_fraction=0.2)
+    write_band_pgm(tmp_path / "scan.yaml", scan)
+    args = ("localize", "--map", str(tmp_path / "map.yaml"), "--scan", str(tmp_path / "scan.yaml"))
+    code, stdout, stderr = run(*args, "--json")
+    assert code == 0, stderr
+    report = json.loads(stdout)
+    assert report["poses_searched"] == 880 * 880 * 360
+    assert report["poses_at_full_resolution"] < 0.01 * report["poses_searched"]
+    assert 0 <= report["unevaluated_mass"] < 1e-5
+    assert report["x_m"] == pytest.approx(truth[0] + 30.0, abs=0.05)
+    assert report["y_m"] == pytest.approx(truth[1] + 30.0, abs=0.05)
+    assert math.remainder(report["yaw_deg"] - 121.0, 360.0) == pytest.approx(0.0, abs=0.5)
+    assert report["dominant"] is True
+    code, stdout, stderr = run(*args, "--pdf-out", str(tmp_path / "pdf.png"))
+    assert code == 0, stderr
+    assert re.search(r"coarse to fine: [\d,]+ at full resolution, unevaluated mass ≤ ", stdout)
+    assert (tmp_path / "pdf.png").stat().st_size > 10_000
