@@ -163,7 +163,7 @@ def bench_search(
             f"s); peak memory {c['peak_numpy_bytes'] / 1e6:.0f} MB numpy, "
             f"{c['peak_rss_bytes'] / 1e6:.0f} MB process RSS; F = {c['coarse_factor']}, "
             f"{c['poses_evaluated']:,} poses at full resolution in {c['patches']} patches, "
-            f"unevaluated mass ≤ {c['unevaluated_mass']:.1e}\n"
+            f"estimated unevaluated mass {c['unevaluated_mass']:.1e}\n"
             f"    pose ({c['pose'][0]:.3f}, {c['pose'][1]:.3f}) m, "
             f"{math.degrees(c['pose'][2]):.2f}° vs truth ({c['truth'][0]:.3f}, "
             f"{c['truth'][1]:.3f}) m, {math.degrees(c['truth'][2]):.2f}°: "

@@ -70,7 +70,7 @@ def localize(
     if report["poses_at_full_resolution"] < report["poses_searched"]:
         windows += (
             f"; coarse to fine: {report['poses_at_full_resolution']:,} at full resolution, "
-            f"unevaluated mass ≤ {report['unevaluated_mass']:.1e}"
+            f"estimated unevaluated mass {report['unevaluated_mass']:.1e}"
         )
     console = make_console()
     console.print(
