@@ -209,5 +209,7 @@ def test_a_map_beyond_the_whole_pdf_is_localized_coarse_to_fine(tmp_path: Path) 
     assert report["dominant"] is True
     code, stdout, stderr = run(*args, "--pdf-out", str(tmp_path / "pdf.png"))
     assert code == 0, stderr
-    assert re.search(r"coarse to fine: [\d,]+ at full resolution, estimated unevaluated mass ", stdout)
+    assert re.search(
+        r"coarse to fine: [\d,]+ at full resolution, estimated unevaluated mass ", stdout
+    )
     assert (tmp_path / "pdf.png").stat().st_size > 10_000
