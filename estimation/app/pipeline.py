@@ -50,6 +50,7 @@ from estimation.posegraph.validate import validate_and_repair
 from estimation.search.stations import (
     SEARCH_STAGES,
     SearchRecord,
+    StationMaps,
     StationParams,
     records_json,
     relocalize,
@@ -333,10 +334,13 @@ def _search_stages(
     mission_stations = stations(dataset, mapping_sweeps(dataset, prepared.sweeps))
     records: list[SearchRecord] = []
     events: list[Localize] = []
+    maps = StationMaps(params)  # built once, kept across the stages while their views stay put
     for name, stage in SEARCH_STAGES:
         if progress is not None:
             progress(f"global localization: {name}")
-        found, stage_records = stage(mission_stations, result.estimate, builder.factors, params)
+        found, stage_records = stage(
+            mission_stations, result.estimate, builder.factors, params, maps=maps
+        )
         records += _as_used(stage_records, config.graph.search_factors)
         if not config.graph.search_factors or not found:
             continue

@@ -43,7 +43,7 @@ __all__ = [
     "write_generated_world",
 ]
 
-MIN_ROOMS, MAX_ROOMS = 3, 15
+MIN_ROOMS, MAX_ROOMS = 3, 40
 #: Reading the text back checks it; libyaml's loader when there is one (it is 10× faster).
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 #: The first line of every generated world file: what marks it as ours to replace.
