@@ -298,6 +298,7 @@ class _Searched:
 
     records: list[SearchRecord]
     events: list[Localize]
+    work: list[dict[str, Any]]  # per station in mission order: fusion and search work
     factors: list[FactorSpec]
     initial: dict[int, np.ndarray]
     keep: set[int]
@@ -353,7 +354,13 @@ def _search_stages(
             k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
         }
         result = optimize_batch(factors, initial, robust=config.graph.robust)
-    return _Searched(records, events, factors, initial, keep, result, optimize_s)
+    work = [
+        {"station": s.label, "rays": w.rays, "fusions": w.own_builds,
+         "seconds": round(w.seconds, 6)}
+        for s in mission_stations
+        if (w := maps.work.get(s.key)) is not None
+    ]  # fmt: skip
+    return _Searched(records, events, work, factors, initial, keep, result, optimize_s)
 
 
 def _relocalized(
@@ -413,6 +420,7 @@ def run_batch(
         "global_localization": {
             "searches": records_json(searched.records),
             "factors": len(searched.events),
+            "station_work": searched.work,
             "validation": validation,
             "relocalization": records_json(relocalized),
         },

@@ -31,8 +31,8 @@ from sensors.sim.furnish import FurnishParams, furnish_room
 from sensors.sim.world import World, world_from_mapping
 
 __all__ = [
-    "HEADER",
     "DRAWN_MAX_ROOMS",
+    "HEADER",
     "MAX_ROOMS",
     "MIN_ROOMS",
     "GeneratedBuilding",
