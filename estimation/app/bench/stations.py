@@ -60,7 +60,7 @@ def _route(site: Any, start: np.ndarray, rng: np.random.Generator) -> list[list[
 
 def bench_mission(folder: Path, seed: int, rooms: int, stations: int, config: Config) -> Path:
     """Write the benchmark's building and mission into ``folder``; returns the mission file."""
-    from estimation.app.evaluation.missions import _Site, furnish_params, start_poses
+    from estimation.app.evaluation.missions import Site, furnish_params, start_poses
     from sensors.sim.generate import write_generated_world
     from sensors.sim.world import load_world
 
@@ -69,7 +69,7 @@ def bench_mission(folder: Path, seed: int, rooms: int, stations: int, config: Co
     write_generated_world(world_path, seed, rooms, furnish_params(config))
     world = load_world(world_path)
     starts = start_poses(world, config, seed, 3)
-    site = _Site(world, config)
+    site = Site(world, config)
     rng = np.random.default_rng([seed, 11])
     # The fourth robot waits in the most open place at least 3 m from the others.
     for _, points in site.rooms_by_floor():
