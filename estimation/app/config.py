@@ -273,6 +273,12 @@ class SearchConfig(_Section):
         description="beta of the searches between station maps inside a mission (links, loop "
         "closures), calibrated on simulated missions",
     )  # fmt: skip
+    station_map_reuse_m: float = Field(
+        0.002, ge=0,
+        description="a station map is kept across the search stages until a view moved "
+        "relative to its station by more than this at any of its points (0: fused again "
+        "whenever a relative pose changed at all)",
+    )  # fmt: skip
 
     @model_validator(mode="after")
     def _windows_ordered(self) -> Self:

@@ -50,6 +50,7 @@ from estimation.posegraph.validate import validate_and_repair
 from estimation.search.stations import (
     SEARCH_STAGES,
     SearchRecord,
+    StationMaps,
     StationParams,
     records_json,
     relocalize,
@@ -297,6 +298,7 @@ class _Searched:
 
     records: list[SearchRecord]
     events: list[Localize]
+    work: list[dict[str, Any]]  # per station in mission order: fusion and search work
     factors: list[FactorSpec]
     initial: dict[int, np.ndarray]
     keep: set[int]
@@ -333,10 +335,13 @@ def _search_stages(
     mission_stations = stations(dataset, mapping_sweeps(dataset, prepared.sweeps))
     records: list[SearchRecord] = []
     events: list[Localize] = []
+    maps = StationMaps(params)  # built once, kept across the stages while their views stay put
     for name, stage in SEARCH_STAGES:
         if progress is not None:
             progress(f"global localization: {name}")
-        found, stage_records = stage(mission_stations, result.estimate, builder.factors, params)
+        found, stage_records = stage(
+            mission_stations, result.estimate, builder.factors, params, maps=maps
+        )
         records += _as_used(stage_records, config.graph.search_factors)
         if not config.graph.search_factors or not found:
             continue
@@ -349,7 +354,13 @@ def _search_stages(
             k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
         }
         result = optimize_batch(factors, initial, robust=config.graph.robust)
-    return _Searched(records, events, factors, initial, keep, result, optimize_s)
+    work = [
+        {"station": s.label, "rays": w.rays, "fusions": w.own_builds,
+         "seconds": round(w.seconds, 6)}
+        for s in mission_stations
+        if (w := maps.work.get(s.key)) is not None
+    ]  # fmt: skip
+    return _Searched(records, events, work, factors, initial, keep, result, optimize_s)
 
 
 def _relocalized(
@@ -409,6 +420,7 @@ def run_batch(
         "global_localization": {
             "searches": records_json(searched.records),
             "factors": len(searched.events),
+            "station_work": searched.work,
             "validation": validation,
             "relocalization": records_json(relocalized),
         },

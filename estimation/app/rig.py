@@ -150,6 +150,7 @@ def station_params(config: Config) -> StationParams:
         window_m=config.search.window_m,
         max_window_m=config.search.max_window_m,
         ceiling_rule=ceiling_rule(config),
+        reuse_tolerance_m=config.search.station_map_reuse_m,
     )
 
 

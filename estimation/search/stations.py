@@ -39,7 +39,6 @@ from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
-from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import relative_covariances
 from estimation.search.correlate import correlate_all
 from estimation.search.exhaustive import (
@@ -50,13 +49,17 @@ from estimation.search.exhaustive import (
     windowed_search,
 )
 from estimation.search.lattice import pose_lattice
-from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
-from mapping.errors import MapError
-from mapping.fusion import Scan as MapScan
-from mapping.fusion import fuse_scans
-from mapping.grid import GridParams
+from estimation.search.station_maps import (
+    Dwell,
+    Station,
+    StationMaps,
+    StationParams,
+    View,
+    fuse_band,
+    mutual_ties,
+)
+from mapping.band import Band
 from sensors.geometry import se2
-from sensors.geometry.frames import pose2_matrix
 
 __all__ = [
     "SEARCH_STAGES",
@@ -64,6 +67,7 @@ __all__ = [
     "SearchPicture",
     "SearchRecord",
     "Station",
+    "StationMaps",
     "StationParams",
     "View",
     "loop_closures",
@@ -103,64 +107,6 @@ _MIN_OVERLAP = 0.1
 
 
 @dataclass(frozen=True, eq=False)
-class View:
-    """One sweep a station map is fused from: the robot pose it was taken at, its points."""
-
-    robot: str
-    index: int
-    points_scanner: np.ndarray  # (N, 3), scanner frame
-
-    @property
-    def key(self) -> int:
-        return pose_key(self.robot, self.index)
-
-
-@dataclass(frozen=True, eq=False)
-class Station:
-    """A reference robot's station: its pose, when its dwells began, the sweeps of its dwells."""
-
-    robot: str
-    index: int
-    time_s: float
-    views: tuple[View, ...]
-
-    @property
-    def key(self) -> int:
-        return pose_key(self.robot, self.index)
-
-    @property
-    def label(self) -> str:
-        return f"{self.robot}{self.index}"
-
-
-@dataclass(frozen=True, eq=False)
-class Dwell:
-    """A dwell after the world changed: when it began and every robot's sweep in it."""
-
-    time_s: float
-    views: tuple[View, ...]
-
-
-@dataclass(frozen=True, eq=False)
-class StationParams:
-    """What the station searches need: how to fuse a station map and cut its bands, and how to
-    search. ``station_search`` differs from ``search`` in β only: station maps, each fused from a
-    few views with millimetre relative poses, agree with each other more closely than a single
-    view agrees with a whole map, so their PDF is sharper (the calibration is in the README)."""
-
-    search: SearchParams  # relocalization against the whole map
-    station_search: SearchParams  # links and loop closures
-    grid: GridParams
-    T_robot_scanner: np.ndarray  # (4, 4)
-    ceiling_m: tuple[float, float]  # band limits above the floor
-    floor_m: tuple[float, float]
-    free_min_observed: float
-    window_m: float  # relocalization's first window side, and its largest
-    max_window_m: float
-    ceiling_rule: CeilingRule | None = None  # a band that follows the ceiling, else ceiling_m
-
-
-@dataclass(frozen=True, eq=False)
 class SearchPicture:
     """What a figure of one search draws (the paper's Fig. 5b): the position PDF summed over the
     rotations, on the lattice searched, and the two bands matched, in the frame of the band
@@ -197,29 +143,6 @@ class SearchRecord:
     picture: SearchPicture | None = field(default=None, compare=False, repr=False)
 
 
-def _band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
-          params: StationParams, which: str) -> Band | None:  # fmt: skip
-    """The band of the views fused in the robot frame ``frame`` (a pose in the map frame)."""
-    usable = [v for v in views if v.key in estimate]
-    if not usable:
-        return None
-    T_frame_map = np.linalg.inv(pose2_matrix(*frame))
-    transforms = np.stack(
-        [T_frame_map @ (pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner) for v in usable]
-    )
-    grid = fuse_scans([MapScan(v.points_scanner) for v in usable], transforms, params.grid)
-    low, high = params.ceiling_m if which == "ceiling" else params.floor_m
-    try:
-        if which == "ceiling" and params.ceiling_rule is not None:
-            band = extract_ceiling_band(grid, params.ceiling_rule,
-                                        free_min_observed=params.free_min_observed)  # fmt: skip
-        else:
-            band = extract_band(grid, low, high, free_min_observed=params.free_min_observed)
-    except MapError:
-        return None
-    return band if band.known.sum() > 50 else None
-
-
 def _search_near(
     local: Band,
     global_: Band,
@@ -251,16 +174,6 @@ def _pose_of(result: SearchResult) -> tuple[float, float, float]:
     return x, y, yaw
 
 
-def _own_views(station: Station, factors: list[FactorSpec]) -> list[View]:
-    """The views of a station's dwells taken at poses tied to it by a mutual observation (its
-    own and the mapper's around it): the others sit there only through odometry."""
-    tied = {station.key}
-    for factor in factors:
-        if factor.kind == "mutual" and station.key in factor.keys:
-            tied.update(factor.keys)
-    return [v for v in station.views if v.key in tied]
-
-
 def station_links(
     stations: list[Station],
     estimate: dict[int, np.ndarray],
@@ -268,22 +181,22 @@ def station_links(
     params: StationParams,
     back: tuple[int, ...] = (1,),
     only: set[int] | None = None,
+    maps: StationMaps | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """Search each station's map against the maps of the stations ``back`` places before it,
     around the predicted relative pose; a best pose consistent with the prediction becomes a
     ``Localize`` event. With ``only`` (station keys), just those stations are searched (the
-    mission loop localizes each new station as it completes)."""
+    mission loop localizes each new station as it completes). ``maps``: the station maps kept
+    from earlier stages (a new :class:`StationMaps` if None)."""
     search = params.station_search
     stations = [s for s in stations if s.key in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
-    maps: dict[int, Band | None] = {}
+    maps = StationMaps(params) if maps is None else maps
+    ties = mutual_ties(factors)
 
     def station_map(station: Station) -> Band | None:
-        if station.key not in maps:
-            own = _own_views(station, factors)
-            maps[station.key] = _band(own, estimate[station.key], estimate, params, "ceiling")
-        return maps[station.key]
+        return maps.band(station, estimate, ties)
 
     pairs = [
         (stations[n - k], stations[n])
@@ -324,6 +237,7 @@ def station_links(
                     _pose_of(result),
                 )
             )  # fmt: skip
+        maps.searched(station, time.perf_counter() - started)
         records.append(
             SearchRecord(
                 station=station.label, against=previous.label, band="ceiling", kind="link",
@@ -341,33 +255,34 @@ def loop_closures(
     factors: list[FactorSpec],
     params: StationParams,
     only: set[int] | None = None,
+    maps: StationMaps | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """Search each station against the older stations near it, in windows around the predicted
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
-    becomes a ``Localize`` event. With ``only``, just those stations are searched."""
+    becomes a ``Localize`` event. With ``only``, just those stations are searched; ``maps`` as
+    in :func:`station_links`."""
     search = params.station_search
     stations = [s for s in stations if s.key in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
+    maps = StationMaps(params) if maps is None else maps
+    ties = mutual_ties(factors)
     relative = relative_covariances(factors, estimate)
+    positions = np.array([estimate[s.key][:2] for s in stations], dtype=np.float64).reshape(-1, 2)
     for n, station in enumerate(stations):
         if only is not None and station.key not in only:
             continue
         here = estimate[station.key]
-
-        def distance(s: Station) -> float:
-            return math.dist(estimate[s.key][:2], here[:2])  # noqa: B023
-
-        older = [s for s in stations[: max(0, n - _MIN_AGE + 1)] if distance(s) < _NEIGHBOURHOOD_M]
-        if not older:
+        candidates = positions[: max(0, n - _MIN_AGE + 1)]
+        distance = np.sqrt(((candidates - here[:2]) ** 2).sum(axis=1))
+        near = np.flatnonzero(distance < _NEIGHBOURHOOD_M)
+        if not len(near):
             continue
-        anchor = min(older, key=distance)
+        older = [stations[k] for k in near]
+        anchor = stations[int(near[np.argmin(distance[near])])]
         anchor_pose = estimate[anchor.key]
-        local = _band(_own_views(station, factors), here, estimate, params, "ceiling")
-        global_ = _band(
-            [v for st in older for v in _own_views(st, factors)], anchor_pose, estimate, params,
-            "ceiling",
-        )  # fmt: skip
+        local = maps.band(station, estimate, ties)
+        global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:
             continue
         predicted = se2.between(anchor_pose, here)
@@ -393,6 +308,7 @@ def loop_closures(
                     pose=_pose_of(result),
                 )
             )  # fmt: skip
+        maps.searched(station, time.perf_counter() - started)
         records.append(
             SearchRecord(
                 station=station.label, against=anchor.label, band="ceiling", kind="loop",
@@ -424,13 +340,16 @@ def relocalize(
     dwell, in its frame) against the map of the ``mapped`` views, ceiling and floor band."""
     records: list[SearchRecord] = []
     origin = np.zeros(3)
+    whole: dict[str, Band | None] = {}  # the map of the mapped views, fused once per band
     for dwell in dwells:
         for view in dwell.views:
             if view.key not in estimate:
                 continue
             for which in ("ceiling", "floor"):
-                local = _band(list(dwell.views), estimate[view.key], estimate, params, which)
-                global_ = _band(mapped, origin, estimate, params, which)
+                local = fuse_band(list(dwell.views), estimate[view.key], estimate, params, which)
+                if which not in whole:
+                    whole[which] = fuse_band(mapped, origin, estimate, params, which)
+                global_ = whole[which]
                 if local is None or global_ is None:
                     continue
                 started = time.perf_counter()

@@ -31,6 +31,7 @@ from sensors.sim.furnish import FurnishParams, furnish_room
 from sensors.sim.world import World, world_from_mapping
 
 __all__ = [
+    "DRAWN_MAX_ROOMS",
     "HEADER",
     "MAX_ROOMS",
     "MIN_ROOMS",
@@ -43,7 +44,9 @@ __all__ = [
     "write_generated_world",
 ]
 
-MIN_ROOMS, MAX_ROOMS = 3, 15
+#: ``--rooms`` accepts up to ``MAX_ROOMS`` (large buildings for benchmarks); a seed without
+#: ``--rooms`` draws its count from ``MIN_ROOMS``–``DRAWN_MAX_ROOMS``, as it always has.
+MIN_ROOMS, MAX_ROOMS, DRAWN_MAX_ROOMS = 3, 40, 15
 #: Reading the text back checks it; libyaml's loader when there is one (it is 10× faster).
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 #: The first line of every generated world file: what marks it as ours to replace.
@@ -99,7 +102,7 @@ def generate_building(
     _check_arguments(seed, rooms)
     params = params or FurnishParams()
     plan_rng = np.random.default_rng([seed, 0])
-    count = int(plan_rng.integers(MIN_ROOMS, MAX_ROOMS + 1)) if rooms is None else rooms
+    count = int(plan_rng.integers(MIN_ROOMS, DRAWN_MAX_ROOMS + 1)) if rooms is None else rooms
     # The narrowest door a robot passes with the planner's margin on both sides, and a cell.
     min_door_m = max(1.0, round(2 * (params.robot_radius_m + 0.1) + 0.2, 2))
     plan = draw_floor_plan(count, plan_rng, min_door_m=min_door_m)

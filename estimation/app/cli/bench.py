@@ -97,6 +97,29 @@ def bench_decode(
     typer.echo(json.dumps(result) if json_out else format_decode_report(result))
 
 
+@bench_app.command("stations")
+@cli_errors
+def bench_stations(
+    out: Annotated[Path, typer.Option(help="Folder for the building, dataset and result.")],
+    json_out: JsonOption = False,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the generated building.")] = 2,
+    rooms: Annotated[int, typer.Option(min=3, max=40, help="Rooms of the building.")] = 32,
+    stations: Annotated[int, typer.Option(min=16, max=500, help="Station budget.")] = 160,
+) -> None:
+    """Per-station work of the station searches against mission length (4 robots, a large
+    generated building): the growth exponent of per-station work and the batch's time."""
+    import json
+
+    from estimation.app.bench.stations import format_stations_report, run_stations_benchmark
+
+    err = make_console(stderr=True)
+    with err.status("generating, simulating and processing the mission…", spinner="dots") as s:
+        result = run_stations_benchmark(
+            out, seed, rooms, stations, progress=lambda text: s.update(text)
+        )
+    typer.echo(json.dumps(result) if json_out else format_stations_report(result))
+
+
 @bench_app.command("search")
 @cli_errors
 def bench_search(

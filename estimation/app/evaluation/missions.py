@@ -49,6 +49,7 @@ from sensors.sim.world import Room, World
 __all__ = [
     "KIND",
     "ROBOT_NAMES",
+    "Site",
     "check_arguments",
     "evaluate_missions",
     "furnish_params",
@@ -165,7 +166,7 @@ def _rounded(pose: np.ndarray) -> np.ndarray:
     return np.array([x, y, math.radians(yaw_deg)])
 
 
-class _Site:
+class Site:
     """The true world as the person placing the robots sees it: where a robot fits (in the main
     connected part of the free space) and whether two beacons see each other."""
 
@@ -236,7 +237,7 @@ def _facing(xy: np.ndarray, target_xy: np.ndarray, side: int) -> np.ndarray:
     return _rounded(np.array([xy[0], xy[1], heading + side * math.radians(FACING_OFFSET_DEG)]))
 
 
-def _pair_candidates(site: _Site, rng: np.random.Generator) -> Iterator[tuple[np.ndarray, ...]]:
+def _pair_candidates(site: Site, rng: np.random.Generator) -> Iterator[tuple[np.ndarray, ...]]:
     for _room, points in site.rooms_by_floor():
         for a_xy in site.places(points, rng):
             first = rng.uniform(0.0, 2 * math.pi)
@@ -256,7 +257,7 @@ def _clear_of(point: np.ndarray, a: np.ndarray, b: np.ndarray, margin_m: float) 
     return float(np.hypot(*(point - (a + t * ab)))) >= margin_m
 
 
-def _third(site: _Site, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+def _third(site: Site, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
     """A third start near the pair, seen by one of them, whose body blocks no line between the
     beacons of the others."""
     margin = site.config.robot.footprint_radius_m + 0.3
@@ -283,7 +284,7 @@ def _third(site: _Site, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
 def start_poses(world: World, config: Config, seed: int, robots: int) -> list[np.ndarray]:
     """Start poses (x_m, y_m, yaw_rad) of ``robots`` robots in ``world`` (module docstring),
     rounded as a mission file holds them; ``MissionError`` when none fit."""
-    site = _Site(world, config)
+    site = Site(world, config)
     rng = np.random.default_rng([seed, 7])
     for a, b in _pair_candidates(site, rng):
         if not site.sees(a, b):

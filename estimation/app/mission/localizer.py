@@ -25,6 +25,7 @@ from estimation.posegraph.graph import FactorSpec
 from estimation.search.stations import (
     SearchRecord,
     Station,
+    StationMaps,
     StationParams,
     loop_closures,
     station_links,
@@ -54,11 +55,14 @@ def localize_station(
     started = time.perf_counter()
     events: list[Localize] = []
     records: list[SearchRecord] = []
+    maps = StationMaps(params)  # each station map fused once for the three searches
     for back in ((1,), (2, 3)):
-        found, done = station_links(stations, estimate, factors, params, back=back, only={key})
+        found, done = station_links(
+            stations, estimate, factors, params, back=back, only={key}, maps=maps
+        )
         events += found
         records += done
-    found, done = loop_closures(stations, estimate, factors, params, only={key})
+    found, done = loop_closures(stations, estimate, factors, params, only={key}, maps=maps)
     label = next((s.label for s in stations if s.key == key), str(key))
     return Localized(label, events + found, records + done, time.perf_counter() - started)
 

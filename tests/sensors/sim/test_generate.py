@@ -208,7 +208,7 @@ def test_the_band_and_robot_come_from_the_parameters() -> None:
 
 @pytest.mark.parametrize(
     ("seed", "rooms", "message"),
-    [(0, 2, r"--rooms must be within 3-15, got 2"), (0, 16, r"--rooms must be within 3-15"),
+    [(0, 2, r"--rooms must be within 3-40, got 2"), (0, 41, r"--rooms must be within 3-40"),
      (-1, None, r"--seed must be >= 0, got -1")],
 )  # fmt: skip
 def test_bad_arguments_are_refused(seed: int, rooms: int | None, message: str) -> None:

@@ -60,8 +60,8 @@ def test_generate_takes_the_band_from_the_config(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("args", "pattern"),
     [
-        (["--seed", "1", "--rooms", "2"], r"--rooms must be within 3-15, got 2"),
-        (["--seed", "1", "--rooms", "16"], r"--rooms must be within 3-15, got 16"),
+        (["--seed", "1", "--rooms", "2"], r"--rooms must be within 3-40, got 2"),
+        (["--seed", "1", "--rooms", "41"], r"--rooms must be within 3-40, got 41"),
         (["--seed", "-4"], r"--seed must be >= 0, got -4"),
     ],
 )

@@ -200,7 +200,7 @@ def test_an_out_folder_holding_a_users_files_is_refused(tmp_path: Path) -> None:
         (["--worlds", "0", "--seed", "1"], r"--worlds must be >= 1, got 0"),
         (["--worlds", "1", "--seed", "1", "--robots", "4"], r"--robots must be 2 or 3, got 4"),
         (["--worlds", "1", "--seed", "-1"], r"--seed must be >= 0, got -1"),
-        (["--worlds", "1", "--seed", "1", "--rooms", "2"], r"--rooms must be within 3-15, got 2"),
+        (["--worlds", "1", "--seed", "1", "--rooms", "2"], r"--rooms must be within 3-40, got 2"),
         (["--worlds", "1", "--seed", "1", "--stations", "0"], r"--stations must be within 1-500"),
     ],
 )

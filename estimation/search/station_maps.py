@@ -1,0 +1,342 @@
+"""Station maps inside a mission, built once and kept while their views stay put (docs/design.md
+§6, §7).
+
+A reference station's map is the ceiling band of the sweeps of its dwells taken at poses tied to
+it by a mutual observation (:func:`tied_views`), fused in the station's robot frame. It depends
+on the *relative* poses of those views to the station only, so when the estimate moves between
+the search stages (the whole mission shifts by metres once the links fix its headings) the map
+stays what it was. :class:`StationMaps` keeps each station's band and the relative poses it was
+fused at, and fuses a station again only when one of its views moved relative to it by more than
+``tolerance_m`` at any of its points (a bound: translation + rotation × the view's reach). With
+``tolerance_m = 0`` a map is reused only when the relative poses are bit for bit the same, so
+the bands equal those fused from scratch.
+
+A loop closure matches a station against the map of the older stations near it, fused in the
+frame of the nearest of them (the anchor). :meth:`StationMaps.older_band` keeps that 3D grid per
+anchor and, when the next search of the same anchor asks for the same stations plus newer ones
+(the views fused so far a prefix of the views wanted, their poses relative to the anchor within
+the tolerance), fuses only the new views into it: fusion is sequential, so appending in order
+gives the grid that fusing the whole list would. Any other change rebuilds the anchor's grid.
+
+Every fusion is counted per station (rays, seconds) in :attr:`StationMaps.work`, for the
+benchmark of per-station work against mission length (``coopmap bench stations``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimation.posegraph.graph import FactorSpec
+from estimation.posegraph.keys import pose_key
+from estimation.search.exhaustive import SearchParams
+from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
+from mapping.errors import MapError
+from mapping.fusion import Scan as MapScan
+from mapping.fusion import fuse_scans
+from mapping.grid import GridParams, OccupancyGrid
+from sensors.geometry import se2
+from sensors.geometry.frames import pose2_matrix
+
+__all__ = [
+    "Dwell",
+    "Station",
+    "StationMaps",
+    "StationParams",
+    "StationWork",
+    "View",
+    "band_of_grid",
+    "fuse_band",
+    "fuse_views",
+    "mutual_ties",
+    "tied_views",
+]
+
+#: A band with fewer known cells than this is no map to match (a station that saw no ceiling).
+MIN_KNOWN_CELLS = 50
+#: Grids of older stations kept (one per anchor, the most recently used): consecutive stations
+#: mostly share their anchor; a long mission would otherwise hold one grid per station.
+_OLDER_GRIDS = 4
+
+
+@dataclass(frozen=True, eq=False)
+class View:
+    """One sweep a station map is fused from: the robot pose it was taken at, its points."""
+
+    robot: str
+    index: int
+    points_scanner: np.ndarray  # (N, 3), scanner frame
+
+    @property
+    def key(self) -> int:
+        return pose_key(self.robot, self.index)
+
+
+@dataclass(frozen=True, eq=False)
+class Station:
+    """A reference robot's station: its pose, when its dwells began, the sweeps of its dwells."""
+
+    robot: str
+    index: int
+    time_s: float
+    views: tuple[View, ...]
+
+    @property
+    def key(self) -> int:
+        return pose_key(self.robot, self.index)
+
+    @property
+    def label(self) -> str:
+        return f"{self.robot}{self.index}"
+
+
+@dataclass(frozen=True, eq=False)
+class Dwell:
+    """A dwell after the world changed: when it began and every robot's sweep in it."""
+
+    time_s: float
+    views: tuple[View, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class StationParams:
+    """What the station searches need: how to fuse a station map and cut its bands, and how to
+    search. ``station_search`` differs from ``search`` in β only: station maps, each fused from a
+    few views with millimetre relative poses, agree with each other more closely than a single
+    view agrees with a whole map, so their PDF is sharper (the calibration is in the README).
+    ``reuse_tolerance_m``: a station map is fused again when a view moved relative to its
+    station by more than this at any of its points (0: only when the poses are bit-identical)."""
+
+    search: SearchParams  # relocalization against the whole map
+    station_search: SearchParams  # links and loop closures
+    grid: GridParams
+    T_robot_scanner: np.ndarray  # (4, 4)
+    ceiling_m: tuple[float, float]  # band limits above the floor
+    floor_m: tuple[float, float]
+    free_min_observed: float
+    window_m: float  # relocalization's first window side, and its largest
+    max_window_m: float
+    ceiling_rule: CeilingRule | None = None  # a band that follows the ceiling, else ceiling_m
+    reuse_tolerance_m: float = 0.0
+
+
+@dataclass
+class StationWork:
+    """The fusion work done for one station: rays cast and wall seconds, for its own map and
+    for the older stations' map its loop closure searched."""
+
+    own_rays: int = 0
+    own_seconds: float = 0.0
+    own_builds: int = 0
+    older_rays: int = 0
+    older_seconds: float = 0.0
+    search_seconds: float = 0.0
+
+    @property
+    def rays(self) -> int:
+        return self.own_rays + self.older_rays
+
+    @property
+    def seconds(self) -> float:
+        return self.own_seconds + self.older_seconds + self.search_seconds
+
+
+def mutual_ties(factors: Iterable[FactorSpec]) -> dict[int, set[int]]:
+    """Every pose key → the keys a mutual observation ties it to (itself included)."""
+    ties: dict[int, set[int]] = {}
+    for factor in factors:
+        if factor.kind == "mutual":
+            for key in factor.keys:
+                ties.setdefault(key, {key}).update(factor.keys)
+    return ties
+
+
+def tied_views(station: Station, ties: dict[int, set[int]]) -> list[View]:
+    """The views of a station's dwells taken at poses tied to it by a mutual observation (its
+    own and the mapper's around it): the others sit there only through odometry."""
+    tied = ties.get(station.key, {station.key})
+    return [v for v in station.views if v.key in tied]
+
+
+def fuse_views(
+    views: Sequence[View],
+    frame: np.ndarray,
+    estimate: dict[int, np.ndarray],
+    params: StationParams,
+    grid: OccupancyGrid | None = None,
+) -> OccupancyGrid:
+    """The views fused, in order, into ``grid`` (a new one if None) in the robot frame ``frame``
+    (a pose in the map frame); every view must have a pose in ``estimate``."""
+    T_frame_map = np.linalg.inv(pose2_matrix(*frame))
+    transforms = np.stack(
+        [T_frame_map @ (pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner) for v in views]
+    ).reshape(-1, 4, 4)
+    return fuse_scans([MapScan(v.points_scanner) for v in views], transforms, params.grid, grid)
+
+
+def band_of_grid(grid: OccupancyGrid, params: StationParams, which: str) -> Band | None:
+    """The ceiling (or floor) band of a station grid, or None when it holds too little."""
+    low, high = params.ceiling_m if which == "ceiling" else params.floor_m
+    try:
+        if which == "ceiling" and params.ceiling_rule is not None:
+            band = extract_ceiling_band(grid, params.ceiling_rule,
+                                        free_min_observed=params.free_min_observed)  # fmt: skip
+        else:
+            band = extract_band(grid, low, high, free_min_observed=params.free_min_observed)
+    except MapError:
+        return None
+    return band if band.known.sum() > MIN_KNOWN_CELLS else None
+
+
+def fuse_band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
+              params: StationParams, which: str) -> Band | None:  # fmt: skip
+    """The band of the views (those with a pose) fused in the robot frame ``frame``."""
+    usable = [v for v in views if v.key in estimate]
+    if not usable:
+        return None
+    return band_of_grid(fuse_views(usable, frame, estimate, params), params, which)
+
+
+def _relative(
+    frame: np.ndarray, views: Sequence[View], estimate: dict[int, np.ndarray]
+) -> np.ndarray:
+    """(k, 3): each view's pose in the robot frame ``frame``."""
+    if not views:
+        return np.zeros((0, 3))
+    poses = np.array([estimate[v.key] for v in views], dtype=np.float64)
+    return np.asarray(se2.between(np.asarray(frame, dtype=np.float64), poses)).reshape(-1, 3)
+
+
+def _reach(view: View, mount: np.ndarray) -> float:
+    """How far from the robot origin (in the plane) the view's points lie, at most."""
+    if len(view.points_scanner) == 0:
+        return 0.0
+    xy = view.points_scanner[:, :2] @ mount[:2, :2].T + mount[:2, 3]
+    return float(np.sqrt((xy * xy).sum(axis=1).max()))
+
+
+def _moved_m(before: np.ndarray, after: np.ndarray, reach_m: np.ndarray) -> float:
+    """The largest displacement of any point (within ``reach_m`` of its view's origin) when the
+    views' relative poses change from ``before`` to ``after`` ((k, 3) each)."""
+    if len(before) == 0:
+        return 0.0
+    delta = np.asarray(se2.between(before, after)).reshape(-1, 3)
+    shift = np.hypot(delta[:, 0], delta[:, 1]) + np.abs(delta[:, 2]) * reach_m
+    return float(shift.max())
+
+
+@dataclass
+class _OwnMap:
+    views: tuple[int, ...]
+    relative: np.ndarray  # (k, 3) the views' poses in the station's frame when fused
+    band: Band | None
+
+
+@dataclass
+class _OlderMap:
+    views: list[int]  # fused so far, in order
+    relative: np.ndarray  # (k, 3) their poses in the anchor's frame when fused
+    grid: OccupancyGrid
+    band: Band | None = None
+    banded: int = -1  # how many views the band was cut from
+
+
+@dataclass
+class StationMaps:
+    """The station maps of a mission, built once and updated as the estimate moves (see the
+    module's docstring). One instance serves every search stage of a run."""
+
+    params: StationParams
+    work: dict[int, StationWork] = field(default_factory=dict)
+    _own: dict[int, _OwnMap] = field(default_factory=dict)
+    _older: OrderedDict[int, _OlderMap] = field(default_factory=OrderedDict)
+    _reach: dict[int, tuple[View, float]] = field(default_factory=dict)  # by id(view)
+
+    def _work(self, key: int) -> StationWork:
+        return self.work.setdefault(key, StationWork())
+
+    def _reaches(self, views: Sequence[View]) -> np.ndarray:
+        mount = self.params.T_robot_scanner
+        for v in views:
+            if id(v) not in self._reach:  # the view is held, so its id stays its own
+                self._reach[id(v)] = (v, _reach(v, mount))
+        return np.array([self._reach[id(v)][1] for v in views])
+
+    def _still(self, before: np.ndarray, after: np.ndarray, views: Sequence[View]) -> bool:
+        if self.params.reuse_tolerance_m <= 0.0:
+            return bool(np.array_equal(before, after))
+        return _moved_m(before, after, self._reaches(views)) <= self.params.reuse_tolerance_m
+
+    def band(
+        self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
+    ) -> Band | None:
+        """The station's ceiling band in its own frame: kept while its views stay put."""
+        views = [v for v in tied_views(station, ties) if v.key in estimate]
+        if not views:
+            return None
+        relative = _relative(estimate[station.key], views, estimate)
+        keys = tuple(v.key for v in views)
+        kept = self._own.get(station.key)
+        if kept is not None and kept.views == keys and self._still(kept.relative, relative, views):
+            return kept.band
+        started = time.perf_counter()
+        grid = fuse_views(views, estimate[station.key], estimate, self.params)
+        band = band_of_grid(grid, self.params, "ceiling")
+        self._own[station.key] = _OwnMap(keys, relative, band)
+        work = self._work(station.key)
+        work.own_rays += sum(len(v.points_scanner) for v in views)
+        work.own_seconds += time.perf_counter() - started
+        work.own_builds += 1
+        return band
+
+    def older_band(
+        self,
+        station: Station,
+        anchor: Station,
+        older: Sequence[Station],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+    ) -> Band | None:
+        """The ceiling band of the ``older`` stations' views fused in ``anchor``'s frame (for
+        ``station``'s loop closure): the anchor's grid so far, with the new views appended when
+        those fused before are the first of the ones wanted and have not moved."""
+        views = [v for s in older for v in tied_views(s, ties) if v.key in estimate]
+        if not views:
+            return None
+        frame = estimate[anchor.key]
+        relative = _relative(frame, views, estimate)
+        keys = [v.key for v in views]
+        started = time.perf_counter()
+        kept = self._older.get(anchor.key)
+        fused = 0 if kept is None else len(kept.views)
+        if (
+            kept is None
+            or keys[:fused] != kept.views
+            or not self._still(kept.relative, relative[:fused], views[:fused])
+        ):
+            kept = _OlderMap([], np.zeros((0, 3)), OccupancyGrid(self.params.grid))
+            fused = 0
+        new = views[fused:]
+        if new:
+            fuse_views(new, frame, estimate, self.params, kept.grid)
+            kept.views = keys
+            kept.relative = np.vstack([kept.relative, relative[fused:]])
+        if kept.banded != len(kept.views):
+            kept.band = band_of_grid(kept.grid, self.params, "ceiling")
+            kept.banded = len(kept.views)
+        self._older[anchor.key] = kept
+        self._older.move_to_end(anchor.key)
+        while len(self._older) > _OLDER_GRIDS:
+            self._older.popitem(last=False)
+        work = self._work(station.key)
+        work.older_rays += sum(len(v.points_scanner) for v in new)
+        work.older_seconds += time.perf_counter() - started
+        return kept.band
+
+    def searched(self, station: Station, seconds: float) -> None:
+        """Count a search's wall time to the station searched."""
+        self._work(station.key).search_seconds += seconds

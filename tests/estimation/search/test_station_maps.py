@@ -1,0 +1,170 @@
+"""Station maps kept across the search stages: reused while their views stay put, equal to the
+maps fused from scratch (bit for bit with no tolerance), the older stations' map appended to."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from estimation.app.config import Config
+from estimation.app.rig import T_robot_scanner, station_params
+from estimation.posegraph.graph import FactorSpec
+from estimation.posegraph.keys import pose_key
+from estimation.search.station_maps import (
+    Station,
+    StationMaps,
+    StationParams,
+    View,
+    fuse_band,
+    mutual_ties,
+    tied_views,
+)
+from estimation.search.station_maps import _moved_m as moved_m
+from mapping.band import Band
+from sensors.geometry import se2
+from sensors.geometry.frames import pose2_matrix
+from tests.mapping.conftest import room_scan
+
+CONFIG = Config()
+EXACT: StationParams = dataclasses.replace(station_params(CONFIG), reuse_tolerance_m=0.0)
+TOLERANT: StationParams = dataclasses.replace(EXACT, reuse_tolerance_m=0.002)
+#: A 9 m × 5 m room whose 3.2 m ceiling lies above the ceiling band: the band holds its walls.
+ROOM = (9.0, 5.0, 3.2)
+#: Four stations of robots a and b leapfrogging along the room; each station's dwells hold the
+#: reference's sweep and the mapper's.
+TRUTH = {
+    pose_key("a", 0): np.array([1.5, 1.5, 0.0]),
+    pose_key("b", 0): np.array([3.0, 2.5, 2.8]),
+    pose_key("b", 1): np.array([3.2, 2.4, 0.1]),
+    pose_key("a", 1): np.array([5.0, 3.0, 3.0]),
+    pose_key("a", 2): np.array([5.2, 2.8, -0.1]),
+    pose_key("b", 2): np.array([7.0, 2.0, 3.1]),
+    pose_key("b", 3): np.array([7.1, 2.2, 0.0]),
+    pose_key("a", 3): np.array([8.0, 3.5, 3.2]),
+}
+PAIRS = [("a", 0, "b", 0), ("b", 1, "a", 1), ("a", 2, "b", 2), ("b", 3, "a", 3)]
+
+
+def view_at(robot: str, index: int) -> View:
+    """The sweep of a robot at its true pose in the room, in its scanner frame."""
+    T_map_scanner = pose2_matrix(*TRUTH[pose_key(robot, index)]) @ T_robot_scanner(CONFIG)
+    points_map = room_scan(T_map_scanner[:3, 3], ROOM, azimuth_steps=240, elevation_steps=60)
+    T_scanner_map = np.linalg.inv(T_map_scanner)
+    return View(robot, index, points_map @ T_scanner_map[:3, :3].T + T_scanner_map[:3, 3])
+
+
+@pytest.fixture(scope="module")
+def mission() -> tuple[list[Station], list[FactorSpec]]:
+    stations, factors = [], []
+    for n, (ref, i, mapper, j) in enumerate(PAIRS):
+        views = (view_at(ref, i), view_at(mapper, j))
+        stations.append(Station(ref, i, 40.0 * n, views))
+        keys = (pose_key(ref, i), pose_key(mapper, j))
+        factors.append(FactorSpec("mutual", keys, np.zeros(3), np.eye(3) * 1e-4, n))
+    return stations, factors
+
+
+def same_band(a: Band | None, b: Band | None) -> bool:
+    assert a is not None
+    assert b is not None
+    return (
+        np.array_equal(a.known, b.known)
+        and np.array_equal(a.occupancy, b.occupancy)
+        and np.array_equal(a.lower_xy, b.lower_xy)
+    )
+
+
+def moved(estimate: dict[int, np.ndarray], by: np.ndarray) -> dict[int, np.ndarray]:
+    """The whole estimate moved rigidly by ``by`` (x, y, yaw) about the map origin."""
+    return {k: se2.compose(by, v) for k, v in estimate.items()}
+
+
+def test_mutual_ties_join_each_station_to_its_mapper(mission) -> None:
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    assert [v.key for v in tied_views(stations[1], ties)] == [pose_key("b", 1), pose_key("a", 1)]
+    assert tied_views(stations[0], {}) == [stations[0].views[0]]  # no tie: its own sweep only
+
+
+def test_a_station_map_is_fused_once_while_its_views_stay_put(mission) -> None:
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    maps = StationMaps(EXACT)
+    first = maps.band(stations[1], TRUTH, ties)
+    assert maps.band(stations[1], dict(TRUTH), ties) is first
+    assert maps.work[stations[1].key].own_builds == 1
+    assert maps.work[stations[1].key].own_rays == sum(
+        len(v.points_scanner) for v in stations[1].views
+    )
+    # The mapper 1 mm away: fused again, and the same as fused from scratch, bit for bit.
+    nudged = dict(TRUTH)
+    nudged[pose_key("a", 1)] = TRUTH[pose_key("a", 1)] + [0.001, 0.0, 0.0]
+    again = maps.band(stations[1], nudged, ties)
+    assert maps.work[stations[1].key].own_builds == 2
+    scratch = fuse_band(
+        tied_views(stations[1], ties), nudged[stations[1].key], nudged, EXACT, "ceiling"
+    )
+    assert same_band(again, scratch)
+
+
+def test_a_station_map_stays_when_the_whole_mission_moves(mission) -> None:
+    """Between the stages the stations move by metres, their views with them: within the
+    tolerance the map is not fused again, and it equals the map fused at the new poses but for
+    a few cells on cell faces."""
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    maps = StationMaps(TOLERANT)
+    before = maps.band(stations[2], TRUTH, ties)
+    shifted = moved(TRUTH, np.array([2.0, -1.3, 0.7]))
+    after = maps.band(stations[2], shifted, ties)
+    assert after is before
+    assert maps.work[stations[2].key].own_builds == 1
+    scratch = fuse_band(
+        tied_views(stations[2], ties), shifted[stations[2].key], shifted, TOLERANT, "ceiling"
+    )
+    assert scratch is not None
+    assert after is not None
+    assert scratch.shape == after.shape
+    assert np.count_nonzero(scratch.known != after.known) <= 0.01 * scratch.known.sum()
+    # A view 5 mm away relative to its station is beyond the tolerance: fused again.
+    far = dict(shifted)
+    far[pose_key("b", 2)] = shifted[pose_key("b", 2)] + [0.005, 0.0, 0.0]
+    maps.band(stations[2], far, ties)
+    assert maps.work[stations[2].key].own_builds == 2
+
+
+def test_the_older_stations_map_is_appended_to_and_equals_the_map_fused_at_once(mission) -> None:
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    maps = StationMaps(EXACT)
+    anchor = stations[0]
+    first = maps.older_band(stations[2], anchor, stations[:1], TRUTH, ties)
+    grown = maps.older_band(stations[3], anchor, stations[:3], TRUTH, ties)
+    views = [v for s in stations[:3] for v in tied_views(s, ties)]
+    assert same_band(grown, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
+    assert not same_band(first, grown)
+    # Only the views not fused before were cast for the second search.
+    new_rays = sum(len(v.points_scanner) for v in views[2:])
+    assert maps.work[stations[3].key].older_rays == new_rays
+    # A list that does not start with the views fused so far rebuilds the grid.
+    other = maps.older_band(stations[3], anchor, stations[1:3], TRUTH, ties)
+    views = [v for s in stations[1:3] for v in tied_views(s, ties)]
+    assert same_band(other, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
+
+
+def test_the_movement_bound_covers_every_point() -> None:
+    """The reuse test's bound (translation + rotation × reach) is never below the true largest
+    displacement of a point."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        before = np.array([rng.uniform(-3, 3), rng.uniform(-3, 3), rng.uniform(-3, 3)])
+        after = before + rng.normal(0.0, [0.003, 0.003, 0.002])
+        points = rng.uniform(-6, 6, (500, 2))
+        reach = float(np.hypot(points[:, 0], points[:, 1]).max())
+        bound = moved_m(before[None], after[None], np.array([reach]))
+        a, b = pose2_matrix(*before), pose2_matrix(*after)
+        homogeneous = np.column_stack([points, np.zeros(len(points)), np.ones(len(points))])
+        true = np.linalg.norm((homogeneous @ a.T - homogeneous @ b.T)[:, :2], axis=1).max()
+        assert true <= bound + 1e-12
