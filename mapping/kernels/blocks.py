@@ -1,7 +1,7 @@
 """Block storage of the occupancy grid: block keys, in-block layout, the block hash table.
 
 Storage (see ``mapping.grid``): the map is a pool of cubic blocks of ``bs³`` cells. A cell holds
-its log-odds (float64; 0, the prior, until observed) and a "known" bit (``known``, (capacity,
+its log-odds (float32, see ``mapping.storage``; 0, the prior, until observed) and a "known" bit (``known``, (capacity,
 ⌈bs³/8⌉) uint8, bit ``f & 7`` of byte ``f >> 3`` for the cell stored at ``f``; set once the cell
 has been observed). Freshly allocated blocks are all zeros. Blocks are found through an
 open-addressing hash table keyed by the packed block coordinates; a block is created the first

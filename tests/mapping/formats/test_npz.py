@@ -74,13 +74,13 @@ def rewrite(path: Path, out: Path, **changes: object) -> Path:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"version": 2}, "map format version 2 is not supported .*reads version 1"),
+        ({"version": 3}, "map format version 3 is not supported .*reads versions 1 and 2"),
         ({"format": "something.else"}, "not a coopmap map"),
         ({"version": None}, r"not a coopmap map \(no format/version entry\)"),
         ({"known": None}, "map is missing known"),
         ({"resolution_m": -0.1}, "resolution_m must be a positive number"),
         ({"block_size_cells": 8}, r"known declares [\d,]+ bytes, more than the [\d,]+ its map"),
-        ({"logodds": np.zeros(3)}, "logodds must hold one float64 per known cell"),
+        ({"logodds": np.zeros(3)}, "logodds must hold one float32 per known cell"),
         ({"block_coords": np.zeros((2, 2), int)}, r"block_coords must be \(B, 3\) integers"),
         ({"origin_m": [0.0, 0.0]}, "origin_m must be 3 floats"),
         ({"version": 1.5}, "'version' must be a scalar"),
