@@ -136,9 +136,7 @@ class OccupancyGrid:
         self._store = BlockStorage(self.params.block_size_cells, max(1, int(capacity_blocks)))
         self._scan_id = 0
         # The clamping bounds as the kernels apply them: float32 values within the bounds.
-        self._l_min, self._l_max = stored_bounds(
-            self.params.logodds_min, self.params.logodds_max
-        )
+        self._l_min, self._l_max = stored_bounds(self.params.logodds_min, self.params.logodds_max)
         # Cells farther than this from the origin cannot be packed into block keys.
         self._max_cells = (BLOCK_OFFSET - 2) * self.params.block_size_cells
 
@@ -302,7 +300,7 @@ class OccupancyGrid:
                 f"{self._lattice_text()} and {other._lattice_text()}"
             )
         n, src = other.block_count, other._store
-        params, store = self.params, self._store
+        store = self._store
         start = 0
         while True:
             start = merge_blocks(

@@ -2,8 +2,8 @@
 
 ``trace_rays`` walks rays from the sensor (Amanatides–Woo), in the scan's cube
 (``mapping.kernels.cube``) while they are in it; ``visit_cells`` is the general per-cell path
-(end points, and the cells of rays beyond the cube), de-duplicated by the per-block bits. ``ray_cells``
-lists the cells of one segment, without storage.
+(end points, and the cells of rays beyond the cube), de-duplicated by the per-block bits.
+``ray_cells`` lists the cells of one segment, without storage.
 
 Per-scan de-duplication outside the cube uses one bit per cell (``flags``, (capacity, bs³ / 8)
 uint8), valid for the scan whose id is in ``block_scan`` (capacity,): a block's bits are cleared
