@@ -52,7 +52,7 @@ __all__ = [
 MAP_FORMAT = "coopmap.map"
 MAP_VERSION = 2
 #: The log-odds type of each version this module reads.
-_LOGODDS_TYPES = {1: np.dtype(np.float64), 2: np.dtype(np.float32)}
+_LOGODDS_TYPES: dict[int, np.dtype[Any]] = {1: np.dtype(np.float64), 2: np.dtype(np.float32)}
 #: The most cells a loaded map's blocks may hold (1 GiB of float32 log-odds).
 MAX_DENSE_CELLS = 2**28
 #: Blocks beyond this many cells must be at least 1/MAX_SPARSITY known (maps coopmap writes
