@@ -27,7 +27,7 @@ from mapping.kernels.blocks import (
 from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks
 from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.logodds import logodds, probability
-from mapping.storage import BlockStorage, discard_scan_cube, scan_cube
+from mapping.storage import BlockStorage, discard_scan_cube, scan_cube, stored_bounds
 
 __all__ = ["MIN_RESOLUTION_M", "GridParams", "OccupancyGrid"]
 
@@ -135,6 +135,8 @@ class OccupancyGrid:
         self.params = params if params is not None else GridParams()
         self._store = BlockStorage(self.params.block_size_cells, max(1, int(capacity_blocks)))
         self._scan_id = 0
+        # The clamping bounds as the kernels apply them: float32 values within the bounds.
+        self._l_min, self._l_max = stored_bounds(self.params.logodds_min, self.params.logodds_max)
         # Cells farther than this from the origin cannot be packed into block keys.
         self._max_cells = (BLOCK_OFFSET - 2) * self.params.block_size_cells
 
@@ -168,7 +170,8 @@ class OccupancyGrid:
         return int(np.count_nonzero(self._known_mask(self.block_count)))
 
     def memory_bytes(self) -> int:
-        """Bytes held by the grid's arrays (the block pool with its spare capacity, the table)."""
+        """Bytes held by the grid's arrays: the block pool with its spare capacity (float32
+        log-odds, known and per-scan bits, block coordinates), the hash table."""
         return self._store.nbytes()
 
     def __repr__(self) -> str:
@@ -255,8 +258,8 @@ class OccupancyGrid:
                 self._scan_id,
                 params.logodds_hit,
                 params.logodds_miss,
-                params.logodds_min,
-                params.logodds_max,
+                self._l_min,
+                self._l_max,
                 phase,
                 start,
             )
@@ -297,7 +300,7 @@ class OccupancyGrid:
                 f"{self._lattice_text()} and {other._lattice_text()}"
             )
         n, src = other.block_count, other._store
-        params, store = self.params, self._store
+        store = self._store
         start = 0
         while True:
             start = merge_blocks(
@@ -312,8 +315,8 @@ class OccupancyGrid:
                 store.logodds,
                 store.known,
                 store.block_scan,
-                params.logodds_min,
-                params.logodds_max,
+                self._l_min,
+                self._l_max,
                 start,
             )
             if start == n:
@@ -335,7 +338,7 @@ class OccupancyGrid:
     # -- queries ----------------------------------------------------------------------------
 
     def cells(self, z_range: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Every known cell: (N, 3) int64 indices and (N,) log-odds.
+        """Every known cell: (N, 3) int64 indices and (N,) float64 log-odds (as stored).
 
         ``z_range`` (k_first, k_last) keeps the cells of those layers only (and reads only the
         blocks that hold them).
@@ -354,7 +357,7 @@ class OccupancyGrid:
         known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].view(bool)
         block, flat = np.nonzero(known)
         found = coords[block] * bs + self._local_of_flat()[flat]
-        values = logodds[block, flat]
+        values = logodds[block, flat].astype(np.float64)
         if z_range is not None:
             keep = (found[:, 2] >= z_range[0]) & (found[:, 2] <= z_range[1])
             found, values = found[keep], values[keep]
@@ -406,7 +409,7 @@ class OccupancyGrid:
         """(B, 3) block coordinates and (B, bs, bs, bs) log-odds (NaN = unknown), x-major."""
         n, bs = self.block_count, self.params.block_size_cells
         order = self._flat_of_local().reshape(-1)
-        values = np.where(self._known_mask(n), self._store.logodds[:n], np.nan)
+        values = np.where(self._known_mask(n), self._store.logodds[:n], np.float64(np.nan))
         return self._store.coords[:n].copy(), values[:, order].reshape(n, bs, bs, bs)
 
     @classmethod
@@ -442,7 +445,7 @@ class OccupancyGrid:
         flat_values = values.reshape(n, bs**3)
         known = ~np.isnan(flat_values)
         store.logodds[:n, order] = np.where(
-            known, np.clip(flat_values, params.logodds_min, params.logodds_max), 0.0
+            known, np.clip(flat_values, grid._l_min, grid._l_max), 0.0
         )
         bits = np.zeros((n, bs**3), dtype=bool)
         bits[:, order] = known
@@ -505,8 +508,8 @@ class OccupancyGrid:
                 store.block_scan,
                 store.lut,
                 params.block_size_cells,
-                params.logodds_min,
-                params.logodds_max,
+                self._l_min,
+                self._l_max,
                 start,
             )
             if start == len(cells):

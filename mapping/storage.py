@@ -12,7 +12,29 @@ import numpy as np
 from mapping.kernels.blocks import EMPTY_KEY, layout_table, rebuild_table
 from mapping.kernels.cube import CUBE_ARRAY_BYTES
 
-__all__ = ["BlockStorage", "discard_scan_cube", "hash_table_bits", "scan_cube"]
+__all__ = [
+    "LOGODDS_DTYPE",
+    "BlockStorage",
+    "discard_scan_cube",
+    "hash_table_bits",
+    "scan_cube",
+    "stored_bounds",
+]
+
+#: The type a cell's log-odds is stored in: float32, as OctoMap stores them. Updates are summed
+#: in float64 and rounded once, on the store; 24 bits of mantissa resolve 2e-7 at the clamps.
+LOGODDS_DTYPE = np.float32
+
+
+def stored_bounds(l_min: float, l_max: float) -> tuple[float, float]:
+    """The clamping bounds as stored values: the float32 values nearest to [l_min, l_max] that
+    lie inside it, so that a clamped, stored log-odds never leaves the float64 bounds."""
+    low, high = np.float32(l_min), np.float32(l_max)
+    if float(low) < l_min:
+        low = np.nextafter(low, np.float32(np.inf))
+    if float(high) > l_max:
+        high = np.nextafter(high, np.float32(-np.inf))
+    return float(low), float(high)
 
 
 @dataclass
@@ -22,7 +44,7 @@ class BlockStorage:
     block_size: int
     capacity: int
     coords: np.ndarray = field(init=False)  # (capacity, 3) int64 block coordinates
-    logodds: np.ndarray = field(init=False)  # (capacity, bs³) float64, 0 until observed
+    logodds: np.ndarray = field(init=False)  # (capacity, bs³) float32, 0 until observed
     known: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: observed
     flags: np.ndarray = field(init=False)  # (capacity, ⌈bs³/8⌉) uint8 bits: updated this scan
     block_scan: np.ndarray = field(init=False)  # (capacity,) int64 scan the flags belong to
@@ -37,7 +59,7 @@ class BlockStorage:
         # Rows of blocks not yet created are left uninitialised: the kernels clear a block's
         # rows when they create it, so growing the pool copies only the rows in use.
         self.coords = np.zeros((self.capacity, 3), dtype=np.int64)
-        self.logodds = np.empty((self.capacity, cells), dtype=np.float64)
+        self.logodds = np.empty((self.capacity, cells), dtype=LOGODDS_DTYPE)
         self.known = np.empty((self.capacity, -(-cells // 8)), dtype=np.uint8)
         self.flags = np.empty_like(self.known)
         self.block_scan = np.zeros(self.capacity, dtype=np.int64)

@@ -4,7 +4,7 @@ A zip of numpy arrays (``numpy.savez_compressed``), readable without coopmap:
 
 =====================  ======================================================================
 ``format``             the string ``coopmap.map``
-``version``            format version (this module writes and reads 1)
+``version``            format version (this module writes 2 and reads 1 and 2)
 ``resolution_m``       cell edge
 ``origin_m``           (3,) corner of cell (0, 0, 0)
 ``block_size_cells``   edge of a storage block
@@ -14,10 +14,13 @@ A zip of numpy arrays (``numpy.savez_compressed``), readable without coopmap:
                        ``block_coords[b] · block_size_cells + [0, block_size_cells)³``)
 ``known``              (B, ⌈bs³/8⌉) uint8: bit j (little-endian bit order) of block b is set
                        when its cell j is known; cell j = (x, y, z) with j = (x·bs + y)·bs + z
-``logodds``            (K,) float64: the log-odds of the known cells, block by block, in j order
+``logodds``            (K,) float32 (version 2; float64 in version 1): the log-odds of the
+                       known cells, block by block, in j order
 =====================  ======================================================================
 
-Values are stored exactly as held (float64), so a map round-trips bit for bit. Loading checks
+Values are stored exactly as the grid holds them (float32 since version 2), so a map
+round-trips bit for bit. Version 1 files (float64, written before the grid stored float32) are
+read with each value rounded to the nearest float32 inside the clamping bounds. Loading checks
 the format, the version and every shape, and raises ``MapError`` naming the file and the
 problem; writing is atomic (a crash never leaves a half-written map where the old one was).
 """
@@ -47,8 +50,10 @@ __all__ = [
 ]
 
 MAP_FORMAT = "coopmap.map"
-MAP_VERSION = 1
-#: The most cells a loaded map's blocks may hold (2 GiB of float64 log-odds).
+MAP_VERSION = 2
+#: The log-odds type of each version this module reads.
+_LOGODDS_TYPES: dict[int, np.dtype[Any]] = {1: np.dtype(np.float64), 2: np.dtype(np.float32)}
+#: The most cells a loaded map's blocks may hold (1 GiB of float32 log-odds).
 MAX_DENSE_CELLS = 2**28
 #: Blocks beyond this many cells must be at least 1/MAX_SPARSITY known (maps coopmap writes
 #: are about 1/3 known: rays fill the blocks they cross).
@@ -93,7 +98,7 @@ def save_map(path: Path | str, grid: OccupancyGrid) -> Path:
         "origin_m": np.array(params.origin_m, dtype=np.float64),
         "block_coords": coords.astype(np.int64),
         "known": np.packbits(known, axis=1, bitorder="little"),
-        "logodds": flat[known],
+        "logodds": flat[known].astype(_LOGODDS_TYPES[MAP_VERSION]),  # exact: stored float32
     }
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
         np.savez_compressed(handle, **arrays)
@@ -149,11 +154,13 @@ def _read(path: Path, archive: Any) -> OccupancyGrid:
     if data["format"].shape != () or str(data["format"]) != MAP_FORMAT:
         raise MapError(f"{path}: not a coopmap map (format {data['format']!r})")
     version = _scalar(path, data, "version", "iu")
-    if version != MAP_VERSION:
+    if version not in _LOGODDS_TYPES:
+        readable = " and ".join(str(v) for v in _LOGODDS_TYPES)
         raise MapError(
             f"{path}: map format version {version} is not supported (this coopmap reads "
-            f"version {MAP_VERSION})"
+            f"versions {readable})"
         )
+    value_type = _LOGODDS_TYPES[version]
     if missing:
         raise MapError(f"{path}: map is missing {', '.join(missing)}")
     origin = data["origin_m"]
@@ -192,11 +199,11 @@ def _read(path: Path, archive: Any) -> OccupancyGrid:
             f"a map is refused when its blocks exceed {MAX_DENSE_CELLS:,} cells, or "
             f"{SMALL_MAP_CELLS:,} cells at under 1/{MAX_SPARSITY} known"
         )
-    values = _member(path, archive, "logodds", 8 * count)
-    if values.ndim != 1 or values.dtype != np.float64 or len(values) != count:
+    values = _member(path, archive, "logodds", value_type.itemsize * count)
+    if values.ndim != 1 or values.dtype != value_type or len(values) != count:
         raise MapError(
-            f"{path}: logodds must hold one float64 per known cell ({count}), "
-            f"got {values.shape} {values.dtype}"
+            f"{path}: logodds must hold one {value_type} per known cell ({count}) in version "
+            f"{version}, got {values.shape} {values.dtype}"
         )
     if not np.all(np.isfinite(values)):
         raise MapError(f"{path}: logodds holds non-finite values")

@@ -1,14 +1,14 @@
 """Block storage of the occupancy grid: block keys, in-block layout, the block hash table.
 
-Storage (see ``mapping.grid``): the map is a pool of cubic blocks of ``bs³`` cells. A cell holds
-its log-odds (float64; 0, the prior, until observed) and a "known" bit (``known``, (capacity,
-⌈bs³/8⌉) uint8, bit ``f & 7`` of byte ``f >> 3`` for the cell stored at ``f``; set once the cell
-has been observed). Freshly allocated blocks are all zeros. Blocks are found through an
-open-addressing hash table keyed by the packed block coordinates; a block is created the first
-time a ray reaches it, so memory follows the observed volume. Within a block, cells are laid out
-in Morton (Z-) order when ``bs`` is a power of two — the 2 × 2 × 2 neighbours of a cell share a
-cache line, which is what a ray walking through the block touches next. The layout is given by
-``lut`` (3, bs): cell (x, y, z) of a block is at ``lut[0, x] + lut[1, y] + lut[2, z]``.
+Storage (see ``mapping.grid``): the map is a pool of cubic blocks of ``bs³`` cells. A cell holds its
+log-odds (float32, see ``mapping.storage``; 0, the prior, until observed) and a "known" bit
+(``known``, (capacity, ⌈bs³/8⌉) uint8, bit ``f & 7`` of byte ``f >> 3`` for the cell stored at
+``f``; set once the cell has been observed). Freshly allocated blocks are all zeros. Blocks are
+found through an open-addressing hash table keyed by the packed block coordinates; a block is
+created the first time a ray reaches it, so memory follows the observed volume. Within a block,
+cells are laid out in Morton (Z-) order when ``bs`` is a power of two — the 2 × 2 × 2 neighbours of
+a cell share a cache line, which is what a ray walking through the block touches next. The layout is
+given by ``lut`` (3, bs): cell (x, y, z) of a block is at ``lut[0, x] + lut[1, y] + lut[2, z]``.
 
 Kernels that may create blocks (``find_or_add_block``) return early when the pool is full; the
 caller grows the pool and calls again from where the kernel stopped.

@@ -13,11 +13,47 @@ import math
 import numpy as np
 from numba import njit
 
-from mapping.kernels.cube import CUBE_HALF, reset_cube
+from mapping.kernels.cube import CUBE_HALF, CUBE_SIDE, apply_fresh, morton, reset_cube
 from mapping.kernels.traversal import trace_rays, visit_cells
 
 #: Kernel phases: occupied end points, free rays to end points, free rays of no-return beams.
 PHASE_HITS, PHASE_RAYS, PHASE_FREE, PHASE_DONE = 0, 1, 2, 3
+
+
+@njit(cache=True)
+def _sort_hits(
+    hits: np.ndarray,
+    grid_origin: np.ndarray,
+    inv_res: float,
+    corner: np.ndarray,
+    cube: np.ndarray,
+    fresh: np.ndarray,
+    outside: np.ndarray,
+) -> tuple[int, int]:
+    """The end cells of (N, 3) ``hits``: those in the cube and not yet marked there are marked
+    and listed in ``fresh`` (Morton codes), the others in ``outside`` (cells); the two counts."""
+    n_fresh = 0
+    n_out = 0
+    for n in range(len(hits)):
+        ix = math.floor((hits[n, 0] - grid_origin[0]) * inv_res)
+        iy = math.floor((hits[n, 1] - grid_origin[1]) * inv_res)
+        iz = math.floor((hits[n, 2] - grid_origin[2]) * inv_res)
+        cx = ix - corner[0]
+        cy = iy - corner[1]
+        cz = iz - corner[2]
+        if 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE:
+            m = morton(cx, cy, cz)
+            seen = np.int64(cube[m >> 3])
+            if not seen & (1 << (m & 7)):
+                cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
+                fresh[n_fresh] = m
+                n_fresh += 1
+        else:
+            outside[n_out, 0] = ix
+            outside[n_out, 1] = iy
+            outside[n_out, 2] = iz
+            n_out += 1
+    return n_fresh, n_out
 
 
 @njit(cache=True)
@@ -68,13 +104,38 @@ def integrate(
         cell = math.floor(o[axis])
         corner[axis] = (cell >> lg << lg if lg >= 0 else cell) - CUBE_HALF
     if phase == PHASE_HITS:
-        cells = np.empty((len(hits), 3), dtype=np.int64)
-        for n in range(len(hits)):
-            for axis in range(3):
-                cells[n, axis] = math.floor((hits[n, axis] - grid_origin[axis]) * inv_res)
+        # End cells in the cube are marked there and applied as a batch; the others go through
+        # the per-block bits. A pool that runs out restarts the phase: what was applied is
+        # marked (skipped), the rest is not.
+        fresh = np.empty(len(hits), dtype=np.int64)
+        outside = np.empty((len(hits), 3), dtype=np.int64)
+        n_fresh, n_out = _sort_hits(hits, grid_origin, inv_res, corner, cube, fresh, outside)
+        done = apply_fresh(
+            fresh,
+            n_fresh,
+            corner,
+            cube,
+            table_keys,
+            table_vals,
+            shift,
+            block_coords,
+            count,
+            logodds,
+            known,
+            block_scan,
+            updates,
+            lut,
+            bs,
+            lg,
+            l_hit,
+            l_min,
+            l_max,
+        )
+        if done < n_fresh:
+            return PHASE_HITS, 0
         stop = visit_cells(
-            cells,
-            start,
+            outside[:n_out],
+            0,
             corner,
             cube,
             table_keys,
@@ -96,8 +157,8 @@ def integrate(
             l_min,
             l_max,
         )
-        if stop < len(hits):
-            return PHASE_HITS, stop
+        if stop < n_out:
+            return PHASE_HITS, 0
         phase = PHASE_RAYS
         start = 0
     for current, ends in ((PHASE_RAYS, hits), (PHASE_FREE, free_ends)):

@@ -1,9 +1,9 @@
 """Voxel traversal of rays through the grid, updating each cell once per scan.
 
 ``trace_rays`` walks rays from the sensor (Amanatides–Woo), in the scan's cube
-(``mapping.kernels.cube``) when they stay in it; ``visit_cells`` is the general per-cell path
-(end points and rays that leave the cube), de-duplicated by the per-block bits. ``ray_cells``
-lists the cells of one segment, without storage.
+(``mapping.kernels.cube``) while they are in it; ``visit_cells`` is the general per-cell path
+(end points, and the cells of rays beyond the cube), de-duplicated by the per-block bits.
+``ray_cells`` lists the cells of one segment, without storage.
 
 Per-scan de-duplication outside the cube uses one bit per cell (``flags``, (capacity, bs³ / 8)
 uint8), valid for the scan whose id is in ``block_scan`` (capacity,): a block's bits are cleared
@@ -198,7 +198,7 @@ def trace_rays(
     fresh = np.empty(n_cap, dtype=np.int64)
     n_fresh = 0
     batch_start = start
-    e = np.empty(3, dtype=np.float64)
+    outside = np.empty((4096, 3), dtype=np.int64)
     for n in range(start, len(ends)):
         ex = (ends[n, 0] - grid_origin[0]) * inv_res
         ey = (ends[n, 1] - grid_origin[1]) * inv_res
@@ -243,12 +243,35 @@ def trace_rays(
             n_fresh = 0
             batch_start = n
         if not inside:
-            e[0] = ex
-            e[1] = ey
-            e[2] = ez
-            cells = ray_cells(o, e, False)
+            if total > len(outside):
+                outside = np.empty((total, 3), dtype=np.int64)
+            n_fresh, n_out = _split_ray(o, ex, ey, ez, corner, cube, fresh, outside)
+            done = apply_fresh(
+                fresh,
+                n_fresh,
+                corner,
+                cube,
+                table_keys,
+                table_vals,
+                shift,
+                block_coords,
+                count,
+                logodds,
+                known,
+                block_scan,
+                updates,
+                lut,
+                bs,
+                lg,
+                delta,
+                l_min,
+                l_max,
+            )
+            if done < n_fresh:
+                return n
+            n_fresh = 0
             done = visit_cells(
-                cells,
+                outside[:n_out],
                 0,
                 corner,
                 cube,
@@ -271,7 +294,7 @@ def trace_rays(
                 l_min,
                 l_max,
             )
-            if done < len(cells):
+            if done < n_out:
                 return n
             batch_start = n + 1
             continue
@@ -352,6 +375,95 @@ def trace_rays(
     if done < n_fresh:
         return batch_start
     return len(ends)
+
+
+@njit(cache=True)
+def _split_ray(
+    o: np.ndarray,
+    ex: float,
+    ey: float,
+    ez: float,
+    corner: np.ndarray,
+    cube: np.ndarray,
+    fresh: np.ndarray,
+    outside: np.ndarray,
+) -> tuple[int, int]:
+    """Walk a ray that ends outside the cube, as ``ray_cells`` does (end cell excluded): the
+    cells in the cube that it reaches first are marked there and listed in ``fresh`` (Morton
+    codes, returned count), the rest — once out, a segment from inside stays out — are listed
+    in ``outside`` (returned count) for ``visit_cells``."""
+    inf = math.inf
+    ox, oy, oz = o[0], o[1], o[2]
+    ix = math.floor(ox)
+    iy = math.floor(oy)
+    iz = math.floor(oz)
+    jx = math.floor(ex)
+    jy = math.floor(ey)
+    jz = math.floor(ez)
+    nx = abs(jx - ix)
+    ny = abs(jy - iy)
+    nz = abs(jz - iz)
+    total = nx + ny + nz
+    sx = 1 if jx > ix else -1
+    sy = 1 if jy > iy else -1
+    sz = 1 if jz > iz else -1
+    tmx = inf
+    tmy = inf
+    tmz = inf
+    tdx = 0.0
+    tdy = 0.0
+    tdz = 0.0
+    if nx > 0:
+        tdx = 1.0 / abs(ex - ox)
+        tmx = ((ix + 1 if sx > 0 else ix) - ox) / (ex - ox)
+    if ny > 0:
+        tdy = 1.0 / abs(ey - oy)
+        tmy = ((iy + 1 if sy > 0 else iy) - oy) / (ey - oy)
+    if nz > 0:
+        tdz = 1.0 / abs(ez - oz)
+        tmz = ((iz + 1 if sz > 0 else iz) - oz) / (ez - oz)
+    n_fresh = 0
+    n_out = 0
+    inside = True
+    for s in range(total):
+        if inside:
+            cx = ix - corner[0]
+            cy = iy - corner[1]
+            cz = iz - corner[2]
+            inside = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
+        if inside:
+            m = morton(cx, cy, cz)
+            seen = np.int64(cube[m >> 3])
+            if not seen & (1 << (m & 7)):
+                cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
+                fresh[n_fresh] = m
+                n_fresh += 1
+        else:
+            outside[n_out, 0] = ix
+            outside[n_out, 1] = iy
+            outside[n_out, 2] = iz
+            n_out += 1
+        if s == total - 1:
+            break
+        # Ties: z before y before x (OctoMap's comparisons), as in ``ray_cells``.
+        if tmx < tmy:
+            if tmx < tmz:
+                ix += sx
+                nx -= 1
+                tmx = tmx + tdx if nx > 0 else inf
+            else:
+                iz += sz
+                nz -= 1
+                tmz = tmz + tdz if nz > 0 else inf
+        elif tmy < tmz:
+            iy += sy
+            ny -= 1
+            tmy = tmy + tdy if ny > 0 else inf
+        else:
+            iz += sz
+            nz -= 1
+            tmz = tmz + tdz if nz > 0 else inf
+    return n_fresh, n_out
 
 
 @njit(cache=True)

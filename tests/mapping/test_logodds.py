@@ -39,7 +39,7 @@ def test_grid_updates_equal_eq3_over_random_evidence(evidence: list[float]) -> N
         grid.apply_evidence(CELL, np.array([e]))
         expected = float(bayes_update(expected, e))
         got = float(probability(grid.logodds_at(CELL))[0])
-        assert abs(got - expected) < 1e-9
+        assert abs(got - expected) < 1e-6  # float32 storage: one rounding (≤ 2.4e-7) a step
 
 
 def test_evidence_listed_twice_counts_twice_in_order() -> None:
@@ -53,13 +53,16 @@ def test_clamping_keeps_the_map_updatable() -> None:
     params = GridParams()  # OctoMap's clamps: 0.1192 and 0.971
     grid = OccupancyGrid(params)
     grid.apply_evidence(np.repeat(CELL, 50, axis=0), np.full(50, params.prob_hit))
-    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(params.clamp_max, abs=1e-12)
+    # float32 storage: the clamp is the float32 nearest to l(0.971) from inside.
+    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(params.clamp_max, abs=1e-7)
+    assert probability(grid.logodds_at(CELL))[0] <= params.clamp_max
     # One miss after saturation moves the cell at once (no hidden excess of evidence).
     grid.apply_evidence(CELL, np.array([params.prob_miss]))
     expected = bayes_update(params.clamp_max, params.prob_miss)
-    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(expected, abs=1e-12)
+    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(expected, abs=1e-7)
     grid.apply_evidence(np.repeat(CELL, 50, axis=0), np.full(50, params.prob_miss))
-    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(params.clamp_min, abs=1e-12)
+    assert probability(grid.logodds_at(CELL))[0] == pytest.approx(params.clamp_min, abs=1e-7)
+    assert probability(grid.logodds_at(CELL))[0] >= params.clamp_min
 
 
 def test_scans_saturate_at_the_clamps() -> None:

@@ -2,10 +2,15 @@
 
 The same scan is inserted at the same resolution into a fresh map by coopmap
 (``OccupancyGrid.integrate_scan``, numba) and by OctoMap (``pyoctomap``'s
-``OcTree.insertPointCloud``, C++), alternating, in one process. Each side's time is its best of
-``repeats`` (the least disturbed by other work on the machine); the ratio is OctoMap's time over
-coopmap's. Agreement: over the cells both maps know (OctoMap's leaves expanded to cells), the
-fraction that both call occupied or both call free.
+``OcTree.insertPointCloud``, C++), alternating, in one process, at 0.05, 0.1 and 0.2 m. OctoMap
+runs in its fair mode: lazy insertion (``lazy_eval=True``) and one ``updateInnerOccupancy`` pass
+(pyoctomap's default runs that pass twice). Each side's time is its best of ``repeats`` (the
+least disturbed by other work on the machine); the ratio is OctoMap's time over coopmap's.
+Agreement: over the cells both maps know (OctoMap's leaves expanded to cells), the fraction that
+both call occupied or both call free. Memory per known cell: coopmap's
+``OccupancyGrid.memory_bytes()`` (every array of the grid, spare pool capacity included) over its
+known cells; OctoMap's ``OcTree.memoryUsage()`` (its own count: nodes, child pointer arrays and
+the tree object) over the cells its leaves cover.
 
 Cases: (a) a simulated 3D scan of essex_lab (``simulated_scan``: a 360° view subsampled to
 25,000 points — the one function to change for the rotating-mirror scanner's sweeps), (b) the
@@ -20,7 +25,7 @@ import bz2
 import math
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +57,8 @@ __all__ = [
 
 REAL_SCAN = Path("octomap_fr079") / "scan.dat.bz2"
 SCAN_POINTS = 25_000
+#: The resolutions every scan is fused at.
+RESOLUTIONS_M = (0.05, 0.1, 0.2)
 
 
 @dataclass(frozen=True)
@@ -106,13 +113,19 @@ def real_scan(data_dir: Path) -> FusionCase | None:
 
 def map_agreement(grid: OccupancyGrid, tree: Any) -> tuple[float, int]:
     """(fraction, count) of the cells known to both maps that they classify alike."""
+    agreement, compared, _ = _compare_maps(grid, tree)
+    return agreement, compared
+
+
+def _compare_maps(grid: OccupancyGrid, tree: Any) -> tuple[float, int, int]:
+    """``map_agreement``'s figures and the number of cells OctoMap's leaves cover."""
     coords, sizes, occupied = [], [], []
     for leaf in tree.begin_leafs():
         coords.append(leaf.getCoordinate())
         sizes.append(leaf.getSize())
         occupied.append(tree.isNodeOccupied(leaf.current_node))
     if not coords:
-        return 1.0, 0
+        return 1.0, 0, 0
     res = grid.resolution_m
     centers = np.asarray(coords, dtype=np.float64)
     edges = np.rint(np.asarray(sizes) / res).astype(np.int64)
@@ -131,8 +144,8 @@ def map_agreement(grid: OccupancyGrid, tree: Any) -> tuple[float, int]:
     ours = values[both] > grid.params.logodds_threshold
     compared = int(both.sum())
     if compared == 0:
-        return 0.0, 0
-    return float(np.mean(ours == peer_occupied[both])), compared
+        return 0.0, 0, len(all_cells)
+    return float(np.mean(ours == peer_occupied[both])), compared, len(all_cells)
 
 
 def _file_size(write: Any, suffix: str) -> int:
@@ -166,13 +179,16 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
         tree.setClampingThresMax(params.clamp_max)
         tree.setOccupancyThres(params.occupied_threshold)
         start = time.perf_counter()
-        tree.insertPointCloud(points, case.origin)
+        tree.insertPointCloud(points, case.origin, -1.0, True)  # lazy_eval: no inner updates
+        tree.updateInnerOccupancy()
         peer.append(time.perf_counter() - start)
-    agreement, compared = map_agreement(grid, tree)
+    agreement, compared, peer_known = _compare_maps(grid, tree)
+    known = grid.known_count()
     n = len(points)
     return {
         "name": case.name,
         "source": case.source,
+        "resolution_m": params.resolution_m,
         "points": n,
         "ratio": min(peer) / min(ours),
         "rays_per_s": n / min(ours),
@@ -184,6 +200,13 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
         "seconds_median": float(np.median(ours)),
         "peer_seconds_median": float(np.median(peer)),
         "cell_updates": grid.cell_updates,
+        "known_cells": known,
+        "peer_known_cells": peer_known,
+        "peer_leaves": int(tree.getNumLeafNodes()),
+        "memory_bytes": grid.memory_bytes(),
+        "peer_memory_bytes": int(tree.memoryUsage()),
+        "bytes_per_known_cell": grid.memory_bytes() / max(known, 1),
+        "peer_bytes_per_known_cell": int(tree.memoryUsage()) / max(peer_known, 1),
         "npz_bytes": _file_size(lambda p: save_map(p, grid), ".npz"),
         "bt_bytes": _file_size(lambda p: write_bt(p, grid), ".bt"),
         "peer_bt_bytes": _file_size(lambda p: tree.writeBinary(str(p)), ".bt"),
@@ -292,14 +315,20 @@ def run_fusion_benchmark(
     *,
     repeats: int = 5,
     refusion_scans: int = 200,
+    resolutions_m: tuple[float, ...] = RESOLUTIONS_M,
 ) -> dict[str, Any]:
-    """Every case, then the re-fusion; top-level figures are the worst case (docs/design.md §11)."""
+    """Every case at every resolution, then the re-fusion; top-level figures are the worst case
+    (docs/design.md §10)."""
     params = grid_params(config.grid)
     cases = [simulated_scan(config)]
     real = real_scan(data_dir)
     if real is not None:
         cases.append(real)
-    results = [measure_case(case, params, repeats) for case in cases]
+    results = [
+        measure_case(case, replace(params, resolution_m=resolution), repeats)
+        for case in cases
+        for resolution in resolutions_m
+    ]
     worst = min(results, key=lambda r: r["ratio"])
     out: dict[str, Any] = {
         "benchmark": "fusion",
@@ -308,8 +337,9 @@ def run_fusion_benchmark(
         "peer_rays_per_s": worst["peer_rays_per_s"],
         "agreement": min(r["agreement"] for r in results),
         "worst_case": worst["name"],
-        "resolution_m": params.resolution_m,
-        "peer": "OctoMap (pyoctomap OcTree.insertPointCloud)",
+        "worst_resolution_m": worst["resolution_m"],
+        "resolutions_m": list(resolutions_m),
+        "peer": "OctoMap (pyoctomap OcTree.insertPointCloud, lazy + one updateInnerOccupancy)",
         "cases": results,
     }
     if refusion_scans > 0:
@@ -323,20 +353,29 @@ def _kb(size: int) -> str:
 
 def format_fusion_report(result: dict[str, Any]) -> str:
     """The human-readable report of ``run_fusion_benchmark``'s result."""
+    resolutions = ", ".join(f"{r:g}" for r in result["resolutions_m"])
     lines = [
-        f"bench fusion: coopmap vs {result['peer']}, {result['resolution_m']:g} m cells, "
+        f"bench fusion: coopmap vs {result['peer']}, {resolutions} m cells, "
         "a fresh map per insertion, alternating in one process, best of each"
     ]
+    sources: set[str] = set()
     for case in result["cases"]:
+        if case["source"] not in sources:
+            sources.add(case["source"])
+            lines.append(f"  {case['name']}: {case['source']}")
         lines.append(
-            f"  {case['name']}: {case['source']}, best of {case['repeats']}\n"
-            f"    coopmap {case['rays_per_s'] / 1e6:.2f} M rays/s "
+            f"    {case['name']} {case['resolution_m']:g} m, best of {case['repeats']}: "
+            f"coopmap {case['rays_per_s'] / 1e6:.2f} M rays/s "
             f"({case['seconds'] * 1e3:.1f} ms), "
             f"OctoMap {case['peer_rays_per_s'] / 1e6:.3f} M rays/s "
             f"({case['peer_seconds'] * 1e3:.0f} ms): {case['ratio']:.1f}×; agreement "
             f"{100 * case['agreement']:.3f} % of {case['cells_compared']:,} cells known to both\n"
-            f"    map.npz {_kb(case['npz_bytes'])} (lossless), .bt {_kb(case['bt_bytes'])} "
-            f"(coopmap) / {_kb(case['peer_bt_bytes'])} (OctoMap; occupied/free only)"
+            f"      memory per known cell: coopmap {case['bytes_per_known_cell']:.1f} B "
+            f"({case['memory_bytes'] / 1e6:.1f} MB / {case['known_cells']:,}), OctoMap "
+            f"{case['peer_bytes_per_known_cell']:.1f} B (memoryUsage() "
+            f"{case['peer_memory_bytes'] / 1e6:.1f} MB / {case['peer_known_cells']:,} cells in "
+            f"{case['peer_leaves']:,} leaves); map.npz {_kb(case['npz_bytes'])} (lossless), "
+            f".bt {_kb(case['bt_bytes'])} (coopmap) / {_kb(case['peer_bt_bytes'])} (OctoMap)"
         )
     refusion = result.get("refusion")
     if refusion:
@@ -349,7 +388,8 @@ def format_fusion_report(result: dict[str, Any]) -> str:
             f"{refusion['rays_per_s'] / 1e6:.2f} M rays/s, {refusion['memory_mb']:.0f} MB)"
         )
     lines.append(
-        f"worst case ({result['worst_case']}): {result['ratio']:.1f}× OctoMap's rays/s; lowest "
-        f"agreement {100 * result['agreement']:.3f} %"
+        f"worst case ({result['worst_case']} at {result['worst_resolution_m']:g} m): "
+        f"{result['ratio']:.1f}× OctoMap's rays/s; lowest agreement "
+        f"{100 * result['agreement']:.3f} %"
     )
     return "\n".join(lines)

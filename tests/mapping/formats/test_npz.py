@@ -74,13 +74,13 @@ def rewrite(path: Path, out: Path, **changes: object) -> Path:
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
-        ({"version": 2}, "map format version 2 is not supported .*reads version 1"),
+        ({"version": 3}, "map format version 3 is not supported .*reads versions 1 and 2"),
         ({"format": "something.else"}, "not a coopmap map"),
         ({"version": None}, r"not a coopmap map \(no format/version entry\)"),
         ({"known": None}, "map is missing known"),
         ({"resolution_m": -0.1}, "resolution_m must be a positive number"),
         ({"block_size_cells": 8}, r"known declares [\d,]+ bytes, more than the [\d,]+ its map"),
-        ({"logodds": np.zeros(3)}, "logodds must hold one float64 per known cell"),
+        ({"logodds": np.zeros(3)}, "logodds must hold one float32 per known cell"),
         ({"block_coords": np.zeros((2, 2), int)}, r"block_coords must be \(B, 3\) integers"),
         ({"origin_m": [0.0, 0.0]}, "origin_m must be 3 floats"),
         ({"version": 1.5}, "'version' must be a scalar"),
@@ -208,3 +208,39 @@ def test_a_sparse_small_map_still_loads(tmp_path: Path) -> None:
     known[:, 0] = 1
     grid = load_map(crafted(tmp_path / "sparse.npz", 16, coords, known, np.full(100, 0.5)))
     assert grid.known_count() == 100
+
+
+def test_version_2_stores_the_float32_values_as_held(tmp_path: Path) -> None:
+    grid = scanned()
+    path = save_map(tmp_path / "map.npz", grid)
+    with np.load(path) as archive:
+        assert int(archive["version"]) == 2
+        assert archive["logodds"].dtype == np.float32
+        stored = archive["logodds"]
+    _, values = grid.blocks()
+    expected = values[~np.isnan(values)].astype(np.float32)  # the file's order: block, then j
+    np.testing.assert_array_equal(stored, expected)
+
+
+def test_version_1_files_are_read_with_values_rounded_to_float32(tmp_path: Path) -> None:
+    grid = scanned()
+    path = save_map(tmp_path / "map.npz", grid)
+    with np.load(path) as archive:
+        v2_values = archive["logodds"].astype(np.float64)
+    # As the float64 grid wrote them: values between float32 steps, inside the clamps.
+    v1_values = np.clip(v2_values + 1e-9, grid.params.logodds_min, grid.params.logodds_max)
+    assert not np.array_equal(v1_values.astype(np.float32).astype(np.float64), v1_values)
+    old = rewrite(path, tmp_path / "v1.npz", version=1, logodds=v1_values)
+    loaded = load_map(old)
+    (cells, values), (ref_cells, _) = loaded.cells(), grid.cells()
+    order, ref_order = np.lexsort(cells.T), np.lexsort(ref_cells.T)
+    np.testing.assert_array_equal(cells[order], ref_cells[ref_order])
+    np.testing.assert_array_equal(
+        np.sort(values), np.sort(v1_values.astype(np.float32).astype(np.float64))
+    )
+    # A version 1 file with float32 values (or version 2 with float64: twice the bytes its
+    # known cells allow) is malformed.
+    with pytest.raises(MapError, match="logodds must hold one float64 per known cell"):
+        load_map(rewrite(path, tmp_path / "bad1.npz", version=1))
+    with pytest.raises(MapError, match=r"logodds declares [\d,]+ bytes, more than"):
+        load_map(rewrite(path, tmp_path / "bad2.npz", logodds=v2_values))

@@ -103,7 +103,8 @@ def test_scan_integration_matches_insert_point_cloud_semantics(
     assert fused_sets(grid) == (occupied, free)
     _, values = grid.cells()
     np.testing.assert_array_equal(
-        np.unique(values), np.unique([params.logodds_miss, params.logodds_hit][: 1 + 1])
+        np.unique(values),
+        np.unique(np.float32([params.logodds_miss, params.logodds_hit])),  # stored as float32
     )
     assert grid.cell_updates == len(occupied) + len(free) == grid.known_count()
 
@@ -195,3 +196,28 @@ def test_bad_scans_are_rejected_and_leave_the_grid_as_it_was(
     after = grid.cells()
     np.testing.assert_array_equal(before[0], after[0])
     np.testing.assert_array_equal(before[1], after[1])
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    resolution=st.sampled_from([0.01, 0.02, 0.05, 0.1]),
+    block=st.sampled_from([2, 3, 8, 16]),
+    spread=st.floats(0.05, 6.0),
+    free_m=st.sampled_from([0.0, 1.5, 7.0]),
+)
+def test_random_scans_match_the_reference_in_and_beyond_the_cube(
+    seed: int, resolution: float, block: int, spread: float, free_m: float
+) -> None:
+    # At 0.01 m the cube spans ±2.56 m: many rays end beyond it and are walked in two parts.
+    rng = np.random.default_rng(seed)
+    sensor = rng.uniform(-2, 2, 3)
+    points = sensor + rng.normal(0, spread, (int(rng.integers(1, 60)), 3))
+    directions = rng.normal(size=(int(rng.integers(0, 20)), 3))
+    params = GridParams(resolution_m=resolution, block_size_cells=block, no_return_free_m=free_m)
+    grid = OccupancyGrid(params, capacity_blocks=1)  # grows mid-ray, many times
+    grid.integrate_scan(points, sensor, directions)
+    ends = sensor + free_m * directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    occupied, free = reference_fusion(points, sensor, resolution, ends if free_m > 0 else ())
+    assert fused_sets(grid) == (occupied, free)
+    assert grid.cell_updates == len(occupied) + len(free)

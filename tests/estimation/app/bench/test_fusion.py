@@ -63,6 +63,27 @@ def test_a_case_measures_both_tools_on_the_same_scan() -> None:
     assert result["repeats"] >= 2
     assert result["npz_bytes"] > 0
     assert result["peer_bt_bytes"] > 0
+    # Memory per known cell: each tool's own count over the cells it knows.
+    assert result["bytes_per_known_cell"] == result["memory_bytes"] / result["known_cells"]
+    assert result["known_cells"] == result["cell_updates"]  # one scan: each cell once
+    assert result["peer_known_cells"] >= result["peer_leaves"] > 0
+    assert result["peer_bytes_per_known_cell"] == pytest.approx(
+        result["peer_memory_bytes"] / result["peer_known_cells"]
+    )
+    assert 8 < result["peer_bytes_per_known_cell"] < 200  # OctoMap: 16 B nodes + pointer arrays
+
+
+def test_octomap_runs_in_its_fair_mode() -> None:
+    """Lazy insertion and one updateInnerOccupancy give the tree the default mode gives."""
+    case = small_case(1000)
+    lazy = pyoctomap.OcTree(0.1)
+    lazy.insertPointCloud(case.points, case.origin, -1.0, True)
+    lazy.updateInnerOccupancy()
+    default = pyoctomap.OcTree(0.1)
+    default.insertPointCloud(case.points, case.origin)
+    grid = OccupancyGrid(GridParams())
+    grid.integrate_scan(case.points, case.origin)
+    assert map_agreement(grid, lazy) == map_agreement(grid, default)
 
 
 def test_agreement_counts_cells_known_to_both() -> None:
@@ -86,10 +107,13 @@ def test_the_benchmark_object_follows_design_11(tmp_path: Path) -> None:
     result = run_fusion_benchmark(Config(), tmp_path, repeats=1, refusion_scans=0)
     assert result.keys() >= FIGURES
     assert result["benchmark"] == "fusion"
-    assert [c["name"] for c in result["cases"]] == ["essex_lab"]  # no shared data in tmp_path
-    case = result["cases"][0]
-    for key in ("ratio", "rays_per_s", "peer_rays_per_s", "agreement"):
+    assert [c["name"] for c in result["cases"]] == ["essex_lab"] * 3  # no shared data in tmp_path
+    assert [c["resolution_m"] for c in result["cases"]] == [0.05, 0.1, 0.2]
+    case = min(result["cases"], key=lambda c: c["ratio"])
+    for key in ("ratio", "rays_per_s", "peer_rays_per_s"):
         assert result[key] == case[key]
+    assert result["agreement"] == min(c["agreement"] for c in result["cases"])
+    assert result["worst_resolution_m"] == case["resolution_m"]
     assert "refusion" not in result
     json.dumps(result)  # plain JSON types only
 
