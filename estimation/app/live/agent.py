@@ -21,6 +21,11 @@ In simulation (``--simulate``) the robot is the simulator's
 keeps a copy of every robot's true motion, replayed from the commands, because its scanner sees
 the others' bodies and beacons. A restarted agent replays its command log through that copy and
 takes the sensors' state back, so what it records next is what it would have recorded anyway.
+
+On real hardware (``--port --odometry --drive``) the robot is a
+:class:`~estimation.app.live.hardware.HardwareRobot`: its recording goes on between commands and
+is cut into time slices, and a restarted agent keeps every chunk on its disk, since nothing can
+record it again.
 """
 
 from __future__ import annotations
