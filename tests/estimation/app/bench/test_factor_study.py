@@ -27,12 +27,18 @@ def test_the_closed_form_between_factor_is_less_accurate(accuracy) -> None:  # t
 
 
 def test_the_native_between_factor_is_fastest() -> None:
-    rows = {row.form: row for row in speed_study(10, 9, seed=1)}
+    # Each form's best of three runs: a machine busy with other work slows single runs unevenly.
+    runs = [{row.form: row for row in speed_study(10, 9, seed=1)} for _ in range(3)]
+    rows = runs[0]
     ml, custom, native = rows["between_ml"], rows["custom"], rows["bearing_range"]
+
+    def best(form: str, field: str) -> float:
+        return min(float(getattr(run[form], field)) for run in runs)
+
     assert ml.variables == ml.poses == 100
     assert native.variables > 1.8 * ml.variables  # beacon points
-    assert custom.linearize_ms > 10 * ml.linearize_ms
-    assert custom.batch_seconds > 5 * ml.batch_seconds
-    assert native.batch_seconds > ml.batch_seconds
+    assert best("custom", "linearize_ms") > 10 * best("between_ml", "linearize_ms")
+    assert best("custom", "batch_seconds") > 5 * best("between_ml", "batch_seconds")
+    assert best("bearing_range", "batch_seconds") > best("between_ml", "batch_seconds")
     assert custom.ate_m == pytest.approx(ml.ate_m, abs=1e-4)
     assert native.ate_m == pytest.approx(ml.ate_m, abs=2e-3)
