@@ -391,13 +391,15 @@ def correlate_lattice(
     workers: int,
     beta: float | None = None,
     keep_scores: bool = True,
+    global_mean: float | None = None,
 ) -> tuple[np.ndarray | None, Slices]:
     """float32 scores (T, Y, X) and each rotation's maximum (and, given β, its sum of
     exp(β·(score − maximum))). Without ``keep_scores``, no scores: each rotation's maximum and
-    where it lies (``slices.argmax``)."""
+    where it lies (``slices.argmax``). ``global_mean``: the centre of the global values for the
+    ``centred`` score when ``global_`` is a crop of the map (default: its own mean)."""
     r = check_pair(local, global_)
     cells = local_cells(local, metric)
-    values = match_values(global_, metric)
+    values = match_values(global_, metric, global_mean)
     origin = np.asarray(global_.lower_xy, dtype=float)
     s = frac(-np.asarray(local.lower_xy, dtype=float) / r)
     m_lo = np.array(
