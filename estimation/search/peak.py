@@ -9,7 +9,10 @@ PDF is therefore
 
 where β (``beta``) stands for ½·logit(q) divided by the number of cells that one independent
 error spans (neighbouring cells are not independent); it is calibrated on simulated searches by
-maximising the probability the PDF gives to the true pose (see ``calibrate_beta``).
+maximising the probability the PDF gives to the true pose (see ``calibrate_beta``). The
+``centred`` score (``lattice``) is the small-signal form of the log-likelihood ratio of
+"corresponding cells" against "independent cells", 0 in expectation at a wrong pose whatever
+the overlap; its β is calibrated the same way.
 
 **Peak.** The best lattice pose is refined by a quadratic fitted to the scores around it
 (``refine_peak``), then by maximising the score with the global values interpolated by a cubic
