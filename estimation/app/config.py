@@ -251,7 +251,7 @@ class BandsConfig(_Section):
     )  # fmt: skip
 
 
-SearchScore = Literal["agreement", "centred"]
+SearchScore = Literal["agreement", "centred", "excess"]
 
 
 class SearchConfig(_Section):
@@ -273,7 +273,7 @@ class SearchConfig(_Section):
     score: SearchScore = Field(
         "agreement",
         description="agreement: Σ v_L·v_G over known cells; centred: the values less their "
-        "band's mean (no gain from overlap alone)",
+        "band's mean; excess: agreement − m_L·m_G·overlap (no gain from overlap alone)",
     )
     beta: float = Field(0.04, gt=0, description="PDF ∝ exp(beta · score), calibrated")
     station_beta: float = Field(

@@ -275,7 +275,11 @@ def best_pose(
     """The refined best pose alone (x_m, y_m, yaw_rad), its lattice score and the seconds it
     took: the lattice argmax of the exhaustive search (``bnb.lattice_best``: branch and
     bound, exact, without scoring every pose), then ``search``'s refinement — a quadratic over
-    the 3×3×3 scores around it, then ``refine_pose``. EstimationError as ``search``."""
+    the 3×3×3 scores around it, then ``refine_pose``. The ``excess`` score, which the bounds do
+    not cover, is searched exhaustively (``search``). EstimationError as ``search``."""
+    if params.score == "excess":  # the branch and bound's bounds are of one correlation
+        found = search(local, global_, params, window_m)
+        return found.pose, found.best_score, found.seconds
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)

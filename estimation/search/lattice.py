@@ -34,6 +34,16 @@ correlation (of the centred images), so the FFT search, the per-pose loop, the b
 and the refinement compute it exactly; the means are those of the whole bands (a search over a
 crop of the map passes the whole map's mean).
 
+``excess`` keeps the agreement's values and subtracts what the overlap alone gives:
+
+    score(T) = agreement(T) − m_L·m_G·N(T),
+
+N(T) the number of local known cells on known map cells (a second correlation, of the known
+masks). Under a wrong pose each overlapping cell's product averages m_L·m_G, so its expected
+score is 0 as well, but unlike ``centred`` the weights of the cell pairs stay the agreement's,
+less one constant: free on free still counts (0.25 − m_L·m_G), occupied on free costs more.
+The branch and bound does not bound it: ``exhaustive.best_pose`` searches exhaustively for it.
+
 **Lattice.** Translations step by the grids' resolution r; their lattice is offset so that at
 θ = 0 local cell centres land on global cell centres; rotations step by 2π/T over the whole
 circle. The global cell "containing" a point is ⌊(q − origin)/r⌋ per axis.
@@ -51,6 +61,7 @@ from mapping.band import Band
 
 __all__ = [
     "EDGE",
+    "MASK_METRIC",
     "QUARTER",
     "SCORES",
     "TIE",
@@ -59,9 +70,11 @@ __all__ = [
     "check_pair",
     "covers_circle",
     "frac",
+    "known_mask",
     "lattice_steps",
     "local_cells",
     "match_values",
+    "overlap_weight",
     "pose_lattice",
     "quarter_lattice",
     "rotation_matrices",
@@ -82,7 +95,7 @@ QUARTER = np.array([[0, -1], [1, 0]], dtype=np.int64)
 
 
 #: The scores a search can correlate (see the module).
-SCORES = ("agreement", "centred")
+SCORES = ("agreement", "centred", "excess")
 
 
 @dataclass(frozen=True)
@@ -106,17 +119,37 @@ class Metric:
             )
 
 
+#: A metric under which occupancy 1 is value 1: ``known_mask`` bands give their known masks.
+MASK_METRIC = Metric(free_weight=0.5, occupied_level=0.5)
+
+
 def match_values(band: Band, metric: Metric, mean: float | None = None) -> np.ndarray:
     """(H, W) float64 cell values of the metric: occupied evidence up to +1, free evidence down
     to −``free_weight``, 0 on unknown cells; with the ``centred`` score, known cells less
     ``mean`` (default: the band's own, ``value_mean``). EstimationError on occupancy outside
     [0, 1] or NaN on a known cell."""
     values = _agreement_values(band, metric)
-    if metric.score == "agreement":
-        return values
+    if metric.score != "centred":
+        return values  # ``excess`` correlates the agreement's values, then subtracts its term
     known = np.asarray(band.known, dtype=bool)
     centre = _known_mean(values, known) if mean is None else float(mean)
     return np.asarray(np.where(known, values - centre, 0.0))
+
+
+def overlap_weight(local: Band, global_: Band, metric: Metric, global_mean: float | None) -> float:
+    """The ``excess`` score's weight c of the overlap count (m_L·m_G, ``global_mean`` standing
+    for the global band's mean when given); 0 for the other scores."""
+    if metric.score != "excess":
+        return 0.0
+    m_g = value_mean(global_, metric) if global_mean is None else float(global_mean)
+    return value_mean(local, metric) * m_g
+
+
+def known_mask(band: Band) -> Band:
+    """The band with occupancy 1 on its known cells: under ``MASK_METRIC`` its values are its
+    known mask, and their correlation counts the overlapping cells."""
+    known = np.asarray(band.known, dtype=bool)
+    return Band(np.where(known, 1.0, 0.0), known, band.lower_xy, band.resolution_m)
 
 
 def value_mean(band: Band, metric: Metric) -> float:

@@ -30,11 +30,12 @@ def random_band(rng: np.random.Generator, shape: tuple[int, int], origin: list[f
     return Band(np.where(known, occupancy, 0.0), known, np.array(origin), 0.1)
 
 
-def centred_by_loop(
-    local: Band, global_: Band, x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray
+def scores_by_loop(
+    local: Band, global_: Band, x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, score: str
 ) -> np.ndarray:
-    """Σ (v_L − m_L)·(v_G − m_G) over the local known cells that land on known map cells,
-    pose by pose, written out from the agreement values and the known masks."""
+    """Pose by pose, over the local known cells that land on known map cells, written out from
+    the agreement values and the known masks: Σ (v_L − m_L)·(v_G − m_G) (``centred``) or
+    Σ v_L·v_G − m_L·m_G·N (``excess``)."""
     v_l, v_g = match_values(local, AGREEMENT), match_values(global_, AGREEMENT)
     k_l, k_g = np.asarray(local.known), np.asarray(global_.known)
     m_l, m_g = v_l[k_l].mean(), v_g[k_g].mean()
@@ -51,12 +52,15 @@ def centred_by_loop(
                 col, row = col.astype(int), row.astype(int)
                 on = (col >= 0) & (row >= 0) & (col < k_g.shape[1]) & (row < k_g.shape[0])
                 on[on] &= k_g[row[on], col[on]]
-                a = v_l[rows[on], cols[on]] - m_l
-                b = v_g[row[on], col[on]] - m_g
-                out[t, iy, ix] = float((a * b).sum())
+                a, b = v_l[rows[on], cols[on]], v_g[row[on], col[on]]
+                if score == "centred":
+                    out[t, iy, ix] = float(((a - m_l) * (b - m_g)).sum())
+                else:
+                    out[t, iy, ix] = float((a * b).sum()) - m_l * m_g * int(on.sum())
     return out
 
 
+@pytest.mark.parametrize("score", ["centred", "excess"])
 @pytest.mark.parametrize(
     ("origin", "step_deg"),
     [
@@ -64,20 +68,21 @@ def centred_by_loop(
         pytest.param([0.33, -0.71], 15.0, id="off-lattice-direct"),
     ],
 )
-def test_centred_fft_scores_equal_a_per_pose_loop_of_the_formula(
-    origin: list[float], step_deg: float
+def test_fft_scores_equal_a_per_pose_loop_of_the_formula(
+    origin: list[float], step_deg: float, score: str
 ) -> None:
     rng = np.random.default_rng(11)
     local = random_band(rng, (9, 11), origin)
     global_ = random_band(rng, (19, 24), [1.0, -2.0])
+    metric = Metric(free_weight=0.5, occupied_level=0.3, score=score)
     x_m, y_m, _ = pose_lattice(local, global_)
     yaw = yaw_lattice(math.radians(step_deg))
-    fast = correlate_all(local, global_, x_m, y_m, yaw, CENTRED, workers=2)
-    slow = centred_by_loop(local, global_, x_m, y_m, yaw)
-    scale = float(np.abs(match_values(local, CENTRED)).sum())
+    fast = correlate_all(local, global_, x_m, y_m, yaw, metric, workers=2)
+    slow = scores_by_loop(local, global_, x_m, y_m, yaw, score)
+    scale = float(np.abs(match_values(local, AGREEMENT)).sum())
     assert np.abs(fast - slow).max() <= 1e-5 * scale
     assert np.abs(slow).max() > 0.05 * scale  # not a trivially empty comparison
-    assert np.abs(score_poses_loop(local, global_, x_m, y_m, yaw, CENTRED) - slow).max() < 1e-9
+    assert np.abs(score_poses_loop(local, global_, x_m, y_m, yaw, metric) - slow).max() < 1e-9
     # Another score indeed: the agreement differs by the overlap terms.
     agreement = correlate_all(local, global_, x_m, y_m, yaw, AGREEMENT)
     assert np.abs(agreement - slow).max() > 0.05 * scale
@@ -153,6 +158,11 @@ def test_agreement_prefers_more_free_overlap_and_the_centred_score_the_truth(
     assert c_truth == pytest.approx(expected, rel=1e-9)
     # In the hall every view cell lands on the same value: Σ (v_L − m_L) = 0.
     assert c_wrong == pytest.approx(0.0, abs=1e-9)
+    excess = Metric(free_weight=0.5, occupied_level=0.1, score="excess")
+    e_truth, e_wrong = pose_scores(view, global_, excess, np.array([truth, wrong]))
+    assert e_truth == pytest.approx(at_truth - m_l * m_g * 215, rel=1e-9)  # 43 + 172 overlap
+    assert e_wrong == pytest.approx(at_wrong - m_l * m_g * 576, rel=1e-9)  # the whole view
+    assert e_truth > e_wrong + 30.0
     params = SearchParams(angular_resolution_rad=math.radians(5.0))
     old = search(view, global_, params)
     new = search(view, global_, SearchParams(angular_resolution_rad=math.radians(5.0),
@@ -160,19 +170,23 @@ def test_agreement_prefers_more_free_overlap_and_the_centred_score_the_truth(
     assert old.pose[0] > 4.0  # somewhere in the hall
     assert np.allclose(new.lattice_pose, truth, atol=1e-9)
     assert new.is_dominant(2.0)
+    step = math.radians(5.0)
+    found = search(view, global_, SearchParams(angular_resolution_rad=step, score="excess"))
+    assert np.allclose(found.lattice_pose, truth, atol=1e-9)
 
 
 # -- degenerate inputs -------------------------------------------------------------------------
 
 
-def test_no_overlap_anywhere_gives_a_flat_pdf() -> None:
+@pytest.mark.parametrize("score", ["centred", "excess"])
+def test_no_overlap_anywhere_gives_a_flat_pdf(score: str) -> None:
     rng = np.random.default_rng(4)
     global_ = random_band(rng, (40, 40), [0.0, 0.0])
     hole = np.asarray(global_.known).copy()
     hole[:, 20:] = False
     global_ = Band(np.where(hole, global_.occupancy, 0.0), hole, global_.lower_xy, 0.1)
     local = random_band(rng, (5, 5), [-0.25, -0.25])
-    params = SearchParams(angular_resolution_rad=math.radians(30.0), score="centred")
+    params = SearchParams(angular_resolution_rad=math.radians(30.0), score=score)
     # Every position of the window is more than the view's reach from a known map cell.
     result = search(local, global_, params, window_m=(3.0, 4.0, 0.0, 4.0))
     assert np.isfinite(result.prob).all()
@@ -201,7 +215,30 @@ def test_bands_whose_known_cells_are_alike_are_one_line_errors() -> None:
 
 
 def test_an_unknown_score_is_an_error_naming_it() -> None:
-    with pytest.raises(EstimationError, match="search score must be one of agreement, centred"):
+    with pytest.raises(
+        EstimationError, match="search score must be one of agreement, centred, excess"
+    ):
         Metric(score="ncc")
     with pytest.raises(EstimationError, match="got 'ncc'"):
         SearchParams(score="ncc")
+
+
+def test_the_excess_score_is_searched_exhaustively_for_the_best_pose() -> None:
+    from estimation.search.bnb import lattice_best
+    from estimation.search.exhaustive import best_pose
+    from estimation.search.scenes import local_view, random_building, rasterise
+
+    scene = random_building(np.random.default_rng(5), 8.0)
+    global_ = rasterise(scene, np.zeros(3), (0.0, 0.0), (80, 80), 0.1)
+    local = local_view(scene, np.array([4.1, 3.3, 0.7]), 2.5, 0.1, np.random.default_rng(1),
+                       noise=0.1, drop_fraction=0.2)  # fmt: skip
+    params = SearchParams(angular_resolution_rad=math.radians(4.0), score="excess")
+    whole = search(local, global_, params)
+    pose, score, _ = best_pose(local, global_, params)
+    assert np.allclose(pose, whole.pose, atol=1e-12)
+    assert score == whole.best_score
+    assert math.dist(pose[:2], (4.1, 3.3)) < 0.05
+    x_m, y_m, _ = pose_lattice(local, global_)
+    yaw = yaw_lattice(params.angular_resolution_rad)
+    with pytest.raises(EstimationError, match="the excess score is searched exhaustively"):
+        lattice_best(local, global_, x_m, y_m, yaw, params.metric)

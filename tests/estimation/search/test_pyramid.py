@@ -69,10 +69,11 @@ def test_same_lattice_pose_pose_and_covariance_as_the_exhaustive_search(
         assert tiled.is_dominant(2.0) == whole.is_dominant(2.0)
 
 
-def test_the_centred_score_gives_the_exhaustive_searchs_answer() -> None:
+@pytest.mark.parametrize("score", ["centred", "excess"])
+def test_the_overlap_free_scores_give_the_exhaustive_searchs_answer(score: str) -> None:
     # The crops of the fine level keep the whole map's mean: the fine scores are the same.
     local, global_ = scene_pair(3, "building", 20.0, 6.0)
-    params = SearchParams(angular_resolution_rad=math.radians(4.0), score="centred")
+    params = SearchParams(angular_resolution_rad=math.radians(4.0), score=score)
     whole = search(local, global_, params)
     tiled = search_coarse_to_fine(local, global_, params, coarse_factor=4)
     assert tiled.best_index == whole.best_index
