@@ -271,7 +271,7 @@ class SearchConfig(_Section):
         0.1, gt=0, lt=1, description="band occupancy from which a cell is occupied evidence"
     )
     score: SearchScore = Field(
-        "excess",
+        "agreement",
         description="agreement: Σ v_L·v_G over known cells; centred: the values less their "
         "band's mean; excess: agreement − m_L·m_G·overlap (no gain from overlap alone)",
     )

@@ -174,7 +174,7 @@ def test_the_search_score_reaches_every_search(tmp_path: Path) -> None:
 
     params = station_params(load_config(write(tmp_path, "search: {score: centred}\n")))
     assert params.search.metric.score == params.station_search.metric.score == "centred"
-    assert station_params(Config()).search.metric.score == "excess"
+    assert station_params(Config()).search.metric.score == "agreement"
 
 
 def test_the_grid_resolution_bound_is_the_grids_own() -> None:
