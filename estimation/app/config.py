@@ -251,6 +251,9 @@ class BandsConfig(_Section):
     )  # fmt: skip
 
 
+SearchScore = Literal["agreement", "centred", "excess"]
+
+
 class SearchConfig(_Section):
     """The exhaustive (x, y, θ) correlation search (docs/design.md §7)."""
 
@@ -266,6 +269,11 @@ class SearchConfig(_Section):
     free_weight: float = Field(0.5, ge=0, description="weight of free-space agreement")
     occupied_level: float = Field(
         0.1, gt=0, lt=1, description="band occupancy from which a cell is occupied evidence"
+    )
+    score: SearchScore = Field(
+        "agreement",
+        description="agreement: Σ v_L·v_G over known cells; centred: the values less their "
+        "band's mean; excess: agreement − m_L·m_G·overlap (no gain from overlap alone)",
     )
     beta: float = Field(0.04, gt=0, description="PDF ∝ exp(beta · score), calibrated")
     station_beta: float = Field(

@@ -132,6 +132,7 @@ def search_params(section: SearchConfig, workers: int = 0) -> SearchParams:
         peak_radius_rad=math.radians(section.peak_radius_deg),
         dominance_ratio=section.dominance_ratio,
         workers=workers,
+        score=section.score,
     )
 
 

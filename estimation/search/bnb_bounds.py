@@ -336,6 +336,10 @@ def build_problem(
     yaw_rad: np.ndarray,
     metric: Metric,
 ) -> Problem:
+    if metric.score == "excess":
+        raise EstimationError(
+            "branch and bound bounds one correlation; the excess score is searched exhaustively"
+        )
     r = check_pair(local, global_)
     cells = local_cells(local, metric)
     values = match_values(global_, metric)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.fft as sfft
@@ -25,14 +25,17 @@ from numba import njit
 from estimation.errors import EstimationError
 from estimation.search.lattice import (
     EDGE,
+    MASK_METRIC,
     QUARTER,
     TIE,
     Cells,
     Metric,
     check_pair,
     frac,
+    known_mask,
     local_cells,
     match_values,
+    overlap_weight,
     quarter_lattice,
     rotation_matrices,
 )
@@ -69,8 +72,16 @@ def score_poses_loop(
     (rotations hoisted out of the translation loop, buffers reused, the global values padded
     with zeros so that no lookup needs a bounds test). The reference for the fast search.
 
-    ``progress`` is called with the index of each rotation once it is done.
+    ``progress`` is called with the index of each rotation once it is done. The ``excess``
+    score is the agreement's loop less c times the loop over the known masks.
     """
+    if metric.score == "excess":
+        plain = replace(metric, score="agreement")
+        scores = score_poses_loop(local, global_, x_m, y_m, yaw_rad, plain, progress=progress)
+        counts = score_poses_loop(
+            known_mask(local), known_mask(global_), x_m, y_m, yaw_rad, MASK_METRIC
+        )
+        return scores - overlap_weight(local, global_, metric, None) * counts
     r = check_pair(local, global_)
     cells = local_cells(local, metric)
     centres = cells.u * r
@@ -391,13 +402,20 @@ def correlate_lattice(
     workers: int,
     beta: float | None = None,
     keep_scores: bool = True,
+    global_mean: float | None = None,
 ) -> tuple[np.ndarray | None, Slices]:
     """float32 scores (T, Y, X) and each rotation's maximum (and, given β, its sum of
     exp(β·(score − maximum))). Without ``keep_scores``, no scores: each rotation's maximum and
-    where it lies (``slices.argmax``)."""
+    where it lies (``slices.argmax``). ``global_mean``: the centre of the global values for the
+    ``centred`` and ``excess`` scores when ``global_`` is a crop of the map (default: its own
+    mean). ``excess``: the agreement's correlation less c times that of the known masks."""
+    if metric.score == "excess":
+        return _excess_lattice(
+            local, global_, (x_m, y_m, yaw_rad), metric, workers, beta, keep_scores, global_mean
+        )
     r = check_pair(local, global_)
     cells = local_cells(local, metric)
-    values = match_values(global_, metric)
+    values = match_values(global_, metric, global_mean)
     origin = np.asarray(global_.lower_xy, dtype=float)
     s = frac(-np.asarray(local.lower_xy, dtype=float) / r)
     m_lo = np.array(
@@ -418,6 +436,37 @@ def correlate_lattice(
 
     run_chunked(work, np.arange(len(plan.base)), workers)
     return out, slices
+
+
+def _excess_lattice(
+    local: Band,
+    global_: Band,
+    lattice: tuple[np.ndarray, np.ndarray, np.ndarray],
+    metric: Metric,
+    workers: int,
+    beta: float | None,
+    keep_scores: bool,
+    global_mean: float | None,
+) -> tuple[np.ndarray | None, Slices]:
+    """``correlate_lattice`` for the ``excess`` score: agreement − c·overlap count, the two
+    correlations combined rotation by rotation, then each rotation's maximum (and sum)."""
+    plain = replace(metric, score="agreement")
+    scores = correlate_lattice(local, global_, *lattice, plain, workers)[0]
+    counts = correlate_lattice(
+        known_mask(local), known_mask(global_), *lattice, MASK_METRIC, workers
+    )[0]
+    assert scores is not None
+    assert counts is not None
+    scores -= np.float32(overlap_weight(local, global_, metric, global_mean)) * counts
+    del counts
+    count = len(scores)
+    slices = Slices(
+        beta, np.empty(count), np.zeros(count), None if keep_scores else np.zeros(count, np.int64)
+    )
+    scratch = np.empty(scores.shape[1:], dtype=np.float32)
+    for t in range(count):
+        slices.record(t, scores[t], scratch)
+    return (scores if keep_scores else None), slices
 
 
 def correlate_all(

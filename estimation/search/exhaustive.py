@@ -73,13 +73,14 @@ class SearchParams:
     peak_radius_rad: float = math.radians(10.0)
     dominance_ratio: float = 2.0
     workers: int = 0  # threads for the FFT loop; 0: one per CPU, at most 4
+    score: str = "agreement"  # lattice.SCORES
 
     def __post_init__(self) -> None:
         for name in ("angular_resolution_rad", "beta", "peak_radius_m", "peak_radius_rad"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise EstimationError(f"search {name} must be a positive number, got {value!r}")
-        Metric(self.free_weight, self.occupied_level)  # validates them
+        Metric(self.free_weight, self.occupied_level, self.score)  # validates them
         if not self.dominance_ratio >= 1:
             raise EstimationError(
                 f"search dominance_ratio must be >= 1, got {self.dominance_ratio!r}"
@@ -89,7 +90,7 @@ class SearchParams:
 
     @property
     def metric(self) -> Metric:
-        return Metric(self.free_weight, self.occupied_level)
+        return Metric(self.free_weight, self.occupied_level, self.score)
 
     def thread_count(self) -> int:
         return self.workers or min(4, os.cpu_count() or 1)
@@ -274,7 +275,11 @@ def best_pose(
     """The refined best pose alone (x_m, y_m, yaw_rad), its lattice score and the seconds it
     took: the lattice argmax of the exhaustive search (``bnb.lattice_best``: branch and
     bound, exact, without scoring every pose), then ``search``'s refinement — a quadratic over
-    the 3×3×3 scores around it, then ``refine_pose``. EstimationError as ``search``."""
+    the 3×3×3 scores around it, then ``refine_pose``. The ``excess`` score, which the bounds do
+    not cover, is searched exhaustively (``search``). EstimationError as ``search``."""
+    if params.score == "excess":  # the branch and bound's bounds are of one correlation
+        found = search(local, global_, params, window_m)
+        return found.pose, found.best_score, found.seconds
     started = time.perf_counter()
     x_m, y_m, _ = pose_lattice(local, global_, window_m)
     yaw_rad = yaw_lattice(params.angular_resolution_rad)

@@ -17,6 +17,33 @@ over the known local cells k with centres c_k: occupied on occupied and free on 
 local cell that falls off the global grid — counts nothing (docs/design.md §7, paper §2.2; the PDF
 it gives: ``peak``).
 
+**Scores.** ``agreement`` is the correlation above. Every known cell on a known cell adds the
+product of the two values whether or not the pose is right, so a pose where more of the view's
+free cells lie on free map cells gains from the overlap alone: free on free adds w² per cell.
+``centred`` correlates the values less their band's mean over its known cells, m_L and m_G:
+
+    score(T) = Σ_k (v_L(k) − m_L) · (v_G(T·c_k) − m_G)     (unknown cells still count 0)
+
+          = agreement − m_G·Σ v_L − m_L·Σ v_G + m_L·m_G·N,
+
+the sums over the N local cells that land on known map cells. If the local values were
+unrelated to the map's under the pose (a wrong pose), each of the N products would average
+mean(v_L·v_G) − m_L·m_G = 0: a wrong pose's expected score is 0 whatever its overlap, and only
+agreement beyond the bands' proportions of occupied and free cells counts. It is still one
+correlation (of the centred images), so the FFT search, the per-pose loop, the branch and bound
+and the refinement compute it exactly; the means are those of the whole bands (a search over a
+crop of the map passes the whole map's mean).
+
+``excess`` keeps the agreement's values and subtracts what the overlap alone gives:
+
+    score(T) = agreement(T) − m_L·m_G·N(T),
+
+N(T) the number of local known cells on known map cells (a second correlation, of the known
+masks). Under a wrong pose each overlapping cell's product averages m_L·m_G, so its expected
+score is 0 as well, but unlike ``centred`` the weights of the cell pairs stay the agreement's,
+less one constant: free on free still counts (0.25 − m_L·m_G), occupied on free costs more.
+The branch and bound does not bound it: ``exhaustive.best_pose`` searches exhaustively for it.
+
 **Lattice.** Translations step by the grids' resolution r; their lattice is offset so that at
 θ = 0 local cell centres land on global cell centres; rotations step by 2π/T over the whole
 circle. The global cell "containing" a point is ⌊(q − origin)/r⌋ per axis.
@@ -34,19 +61,24 @@ from mapping.band import Band
 
 __all__ = [
     "EDGE",
+    "MASK_METRIC",
     "QUARTER",
+    "SCORES",
     "TIE",
     "Cells",
     "Metric",
     "check_pair",
     "covers_circle",
     "frac",
+    "known_mask",
     "lattice_steps",
     "local_cells",
     "match_values",
+    "overlap_weight",
     "pose_lattice",
     "quarter_lattice",
     "rotation_matrices",
+    "value_mean",
     "yaw_lattice",
 ]
 
@@ -62,14 +94,23 @@ TIE = 1e-7
 QUARTER = np.array([[0, -1], [1, 0]], dtype=np.int64)
 
 
+#: The scores a search can correlate (see the module).
+SCORES = ("agreement", "centred", "excess")
+
+
 @dataclass(frozen=True)
 class Metric:
     """How band occupancy becomes the cell values the score correlates (see the module)."""
 
     free_weight: float = 0.5
     occupied_level: float = 0.1
+    score: str = "agreement"
 
     def __post_init__(self) -> None:
+        if self.score not in SCORES:
+            raise EstimationError(
+                f"search score must be one of {', '.join(SCORES)}, got {self.score!r}"
+            )
         if not (math.isfinite(self.free_weight) and self.free_weight >= 0):
             raise EstimationError(f"search free_weight must be >= 0, got {self.free_weight!r}")
         if not 0 < self.occupied_level < 1:
@@ -78,10 +119,51 @@ class Metric:
             )
 
 
-def match_values(band: Band, metric: Metric) -> np.ndarray:
+#: A metric under which occupancy 1 is value 1: ``known_mask`` bands give their known masks.
+MASK_METRIC = Metric(free_weight=0.5, occupied_level=0.5)
+
+
+def match_values(band: Band, metric: Metric, mean: float | None = None) -> np.ndarray:
     """(H, W) float64 cell values of the metric: occupied evidence up to +1, free evidence down
-    to −``free_weight``, 0 on unknown cells. EstimationError on occupancy outside [0, 1] or NaN
-    on a known cell."""
+    to −``free_weight``, 0 on unknown cells; with the ``centred`` score, known cells less
+    ``mean`` (default: the band's own, ``value_mean``). EstimationError on occupancy outside
+    [0, 1] or NaN on a known cell."""
+    values = _agreement_values(band, metric)
+    if metric.score != "centred":
+        return values  # ``excess`` correlates the agreement's values, then subtracts its term
+    known = np.asarray(band.known, dtype=bool)
+    centre = _known_mean(values, known) if mean is None else float(mean)
+    return np.asarray(np.where(known, values - centre, 0.0))
+
+
+def overlap_weight(local: Band, global_: Band, metric: Metric, global_mean: float | None) -> float:
+    """The ``excess`` score's weight c of the overlap count (m_L·m_G, ``global_mean`` standing
+    for the global band's mean when given); 0 for the other scores."""
+    if metric.score != "excess":
+        return 0.0
+    m_g = value_mean(global_, metric) if global_mean is None else float(global_mean)
+    return value_mean(local, metric) * m_g
+
+
+def known_mask(band: Band) -> Band:
+    """The band with occupancy 1 on its known cells: under ``MASK_METRIC`` its values are its
+    known mask, and their correlation counts the overlapping cells."""
+    known = np.asarray(band.known, dtype=bool)
+    return Band(np.where(known, 1.0, 0.0), known, band.lower_xy, band.resolution_m)
+
+
+def value_mean(band: Band, metric: Metric) -> float:
+    """The mean ``agreement`` value over the band's known cells, the centre of the ``centred``
+    score; 0 on a band with no known cell."""
+    return _known_mean(_agreement_values(band, metric), np.asarray(band.known, dtype=bool))
+
+
+def _known_mean(values: np.ndarray, known: np.ndarray) -> float:
+    count = int(np.count_nonzero(known))
+    return float(values[known].sum()) / count if count else 0.0
+
+
+def _agreement_values(band: Band, metric: Metric) -> np.ndarray:
     occupancy = np.asarray(band.occupancy, dtype=np.float64)
     known = np.asarray(band.known, dtype=bool)
     if known.any():
@@ -154,6 +236,11 @@ def local_cells(local: Band, metric: Metric) -> Cells:
     values = match_values(local, metric)
     rows, cols = np.nonzero(values)
     if len(rows) == 0:
+        if metric.score == "centred" and np.asarray(local.known, dtype=bool).any():
+            raise EstimationError(
+                "scan grid's known cells all have the same value: the centred score is 0 at "
+                "every pose"
+            )
         raise EstimationError("scan grid has no known cell with occupied or free evidence")
     r = float(local.resolution_m)
     origin = np.asarray(local.lower_xy, dtype=float) / r

@@ -9,7 +9,10 @@ PDF is therefore
 
 where β (``beta``) stands for ½·logit(q) divided by the number of cells that one independent
 error spans (neighbouring cells are not independent); it is calibrated on simulated searches by
-maximising the probability the PDF gives to the true pose (see ``calibrate_beta``).
+maximising the probability the PDF gives to the true pose (see ``calibrate_beta``). The
+``centred`` score (``lattice``) is the small-signal form of the log-likelihood ratio of
+"corresponding cells" against "independent cells", 0 in expectation at a wrong pose whatever
+the overlap; its β is calibrated the same way.
 
 **Peak.** The best lattice pose is refined by a quadratic fitted to the scores around it
 (``refine_peak``), then by maximising the score with the global values interpolated by a cubic
@@ -27,12 +30,16 @@ from numba import njit
 
 from estimation.search.correlate import NORMAL_FLOOR, Slices, run_chunked
 from estimation.search.lattice import (
+    MASK_METRIC,
+    Cells,
     Metric,
     check_pair,
     covers_circle,
+    known_mask,
     lattice_steps,
     local_cells,
     match_values,
+    overlap_weight,
 )
 from mapping.band import Band
 
@@ -356,19 +363,33 @@ def refine_pose(
     from scipy.ndimage import spline_filter
 
     r = check_pair(local, global_)
-    cells = local_cells(local, metric)
-    centres = cells.u * r
-    values = np.pad(match_values(global_, metric), _PAD)
-    coefficients = spline_filter(values, order=3, mode="mirror")
+    # (cells, interpolated global values) of each term: the score, and for the ``excess`` score
+    # the overlap count weighted by −c (``lattice``).
+    terms = [(local_cells(local, metric), match_values(global_, metric))]
+    weight = overlap_weight(local, global_, metric, None)
+    if weight != 0.0:
+        mask = local_cells(known_mask(local), MASK_METRIC)
+        terms.append(
+            (Cells(mask.u, -weight * mask.w), match_values(known_mask(global_), MASK_METRIC))
+        )
+    splines = [
+        (cells.u * r, cells.w, spline_filter(np.pad(values, _PAD), order=3, mode="mirror"))
+        for cells, values in terms
+    ]
     origin = np.asarray(global_.lower_xy, dtype=float)
     # Scale the variables so that the bounds are ±1 along each.
     scale = np.maximum(bounds[:, 1] - bounds[:, 0], 1e-12) / 2.0
     centre = bounds.mean(axis=1)
     gradient = np.zeros(3)
+    part = np.zeros(3)
 
     def cost(z: np.ndarray) -> tuple[float, np.ndarray]:
         pose = centre + z * scale
-        value = _spline_score(centres, cells.w, coefficients, origin, r, pose, gradient)
+        value = 0.0
+        gradient.fill(0.0)
+        for centres, w, coefficients in splines:
+            value += _spline_score(centres, w, coefficients, origin, r, pose, part)
+            np.add(gradient, part, out=gradient)
         return -value, -gradient * scale
 
     start = np.clip(np.asarray(start, dtype=float), bounds[:, 0], bounds[:, 1])

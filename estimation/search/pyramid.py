@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -45,6 +45,7 @@ from estimation.search.lattice import (
     local_cells,
     match_values,
     pose_lattice,
+    value_mean,
     yaw_lattice,
 )
 from estimation.search.peak import peak_covariance, refine_peak, refine_pose
@@ -154,8 +155,10 @@ class TiledResult:
 def coarsen(band: Band, factor: int, metric: Metric) -> Band:
     """The band averaged over ``factor`` × ``factor`` cells: a coarse cell's metric value is the
     mean of its cells' (0 for unknown ones), given back as the occupancy the metric maps onto it;
-    it is known when one of its cells is. Same lower corner, ``factor`` times the resolution."""
-    values = match_values(band, metric)
+    it is known when one of its cells is. Same lower corner, ``factor`` times the resolution.
+    The ``agreement`` values are averaged (the occupancy maps onto them); a ``centred`` search
+    centres the coarse band on its own mean."""
+    values = match_values(band, replace(metric, score="agreement"))
     rows, cols = values.shape
     n_y, n_x = -(-rows // factor), -(-cols // factor)
     padded = np.zeros((n_y * factor, n_x * factor))
@@ -237,6 +240,7 @@ class _Lattice:
     metric: Metric
     reach_cells: int  # the local cells lie within this many cells of the local frame's origin
     workers: int
+    global_mean: float  # the whole map's centre of the centred score (crops keep it)
 
     def scores(self, t: np.ndarray, ys: slice, xs: slice) -> np.ndarray:
         """float32 scores (len(t), Y, X) of rotations ``t`` over rows ``ys``, columns ``xs``."""
@@ -252,11 +256,12 @@ class _Lattice:
             (math.floor(col[0]) - pad, math.ceil(col[1]) + pad + 1),
         )
         shape = (len(t), len(y_m), len(x_m))
-        if crop.occupancy.size == 0 or not match_values(crop, self.metric).any():
+        if crop.occupancy.size == 0 or not match_values(crop, self.metric, self.global_mean).any():
             return np.zeros(shape, dtype=np.float32)  # no map where the local cells land
         scores, _ = correlate_lattice(
-            self.local, crop, x_m, y_m, self.yaw_rad[t], self.metric, self.workers
-        )
+            self.local, crop, x_m, y_m, self.yaw_rad[t], self.metric, self.workers,
+            global_mean=self.global_mean,
+        )  # fmt: skip
         assert scores is not None
         return scores
 
@@ -407,7 +412,9 @@ def search_coarse_to_fine(
         raise EstimationError("map grid has no known cell with occupied or free evidence")
     workers = params.thread_count()
     reach = math.ceil(float(np.sqrt((cells.u**2).sum(axis=1)).max()))
-    lattice = _Lattice(local, global_, x_m, y_m, yaw_rad, metric, reach, workers)
+    lattice = _Lattice(
+        local, global_, x_m, y_m, yaw_rad, metric, reach, workers, value_mean(global_, metric)
+    )
 
     # The coarse level: every pose, F times coarser in x and y.
     local_c, global_c = coarsen(local, factor, metric), coarsen(global_, factor, metric)

@@ -104,6 +104,7 @@ def test_integers_are_accepted_for_floats(tmp_path: Path) -> None:
         ("serial: {permanent_baud: 1}\n", r"serial\.permanent_baud: Input should be a valid boolean \(got 1\)"),
         ("graph: {robust: tukey}\n", r"graph\.robust: Input should be 'gnc_tls', 'huber', 'cauchy' or 'none' \(got 'tukey'\)"),
         ("search: {station_beta: 0}\n", r"search\.station_beta: Input should be greater than 0 \(got 0\)"),
+        ("search: {score: ncc}\n", r"search\.score: Input should be 'agreement', 'centred' or 'excess' \(got 'ncc'\)"),
         ("bands: {free_min_observed: 1.5}\n", r"bands\.free_min_observed: Input should be less than or equal to 1 \(got 1\.5\)"),
         ("search: {window_m: 50.0}\n", r"search: window_m \(50\.0\) must not exceed max_window_m \(40\.0\)"),
         ("mirror: {elevation_min_deg: 10, elevation_max_deg: 0}\n", r"mirror: elevation_min_deg \(10\.0\) must be below"),
@@ -166,6 +167,14 @@ def test_station_searches_use_station_beta(tmp_path: Path) -> None:
     assert params.search.beta == pytest.approx(0.05)
     assert params.station_search.beta == pytest.approx(0.2)
     assert params.station_search.free_weight == params.search.free_weight
+
+
+def test_the_search_score_reaches_every_search(tmp_path: Path) -> None:
+    from estimation.app.rig import station_params
+
+    params = station_params(load_config(write(tmp_path, "search: {score: centred}\n")))
+    assert params.search.metric.score == params.station_search.metric.score == "centred"
+    assert station_params(Config()).search.metric.score == "agreement"
 
 
 def test_the_grid_resolution_bound_is_the_grids_own() -> None:

@@ -65,6 +65,21 @@ def assert_exhaustive_argmax(
 # -- the argmax --------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("truth", [[4.1, 3.3, 0.7], [6.3, 1.7, 2.9]], ids=["a", "c"])
+def test_branch_and_bound_finds_the_centred_scores_argmax(
+    building: tuple[Band, Scene], truth: list[float]
+) -> None:
+    global_, scene = building
+    rng = np.random.default_rng(1)
+    local = local_view(scene, np.array(truth), 3.0, 0.1, rng, noise=0.1, drop_fraction=0.2)
+    params = SearchParams(angular_resolution_rad=math.radians(2.0), score="centred")
+    best = assert_exhaustive_argmax(local, global_, params)
+    assert best.pruned
+    whole = search(local, global_, params)
+    assert best.index == whole.best_index
+    assert np.allclose(best_pose(local, global_, params)[0], whole.pose, atol=1e-9)
+
+
 @pytest.mark.parametrize(
     "truth", [[4.1, 3.3, 0.7], [2.2, 5.9, -2.5], [6.3, 1.7, 2.9]], ids=["a", "b", "c"]
 )

@@ -69,6 +69,21 @@ def test_same_lattice_pose_pose_and_covariance_as_the_exhaustive_search(
         assert tiled.is_dominant(2.0) == whole.is_dominant(2.0)
 
 
+@pytest.mark.parametrize("score", ["centred", "excess"])
+def test_the_overlap_free_scores_give_the_exhaustive_searchs_answer(score: str) -> None:
+    # The crops of the fine level keep the whole map's mean: the fine scores are the same.
+    local, global_ = scene_pair(3, "building", 20.0, 6.0)
+    params = SearchParams(angular_resolution_rad=math.radians(4.0), score=score)
+    whole = search(local, global_, params)
+    tiled = search_coarse_to_fine(local, global_, params, coarse_factor=4)
+    assert tiled.best_index == whole.best_index
+    assert tiled.best_score == pytest.approx(whole.best_score, rel=1e-5)
+    assert np.allclose(tiled.pose, whole.pose, atol=1e-6)
+    assert np.allclose(tiled.covariance, whole.covariance, rtol=1e-3, atol=1e-12)
+    agreement = search(local, global_, PARAMS)
+    assert whole.best_score != pytest.approx(agreement.best_score, rel=1e-3)  # another score
+
+
 @pytest.mark.parametrize(("seed", "kind", "side", "radius", "factor"), CASES)
 def test_unevaluated_mass_bounds_the_exhaustive_pdf_outside_the_patches(
     seed: int, kind: str, side: float, radius: float, factor: int
