@@ -47,6 +47,7 @@ import numpy as np
 
 from estimation.app.config import Config
 from estimation.app.live.emulated import EmulatedLms
+from estimation.app.live.hardware import parse_goal
 from estimation.app.live.wire import (
     Chunk,
     WireError,
@@ -293,15 +294,13 @@ class SimulatedRobot:
 
 
 def _goal(args: dict[str, Any]) -> Goal:
-    try:
-        believed = args.get("believed")
-        return Goal(
-            str(args["robot"]), tuple(float(v) for v in args["pose"]),  # type: ignore[arg-type]
-            tuple((float(p[0]), float(p[1])) for p in args.get("path", [])),
-            None if believed is None else tuple(float(v) for v in believed),  # type: ignore[arg-type]
-        )  # fmt: skip
-    except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise WireError(f"move command: bad goal ({exc})") from None
+    """A move command's goal, checked as a real robot checks it (finite, the right shapes)."""
+    robot, pose, path, believed = parse_goal(args)
+    return Goal(
+        robot, (float(pose[0]), float(pose[1]), float(pose[2])),
+        tuple((float(p[0]), float(p[1])) for p in path),
+        None if believed is None else (float(believed[0]), float(believed[1]), float(believed[2])),
+    )  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -276,3 +276,13 @@ def _wait_until(predicate: Any, timeout_s: float = 10.0) -> None:
     while not predicate():
         assert time.monotonic() < deadline
         time.sleep(0.01)
+
+
+def test_a_simulated_robot_refuses_a_goal_it_cannot_drive_to(tmp_path: Path) -> None:
+    robot, _ = agent(tmp_path / "b")
+    robot._command(command(0))
+    bad = {"run": "run1", "seq": 1, "op": "move",
+           "args": {"robot": "b", "pose": [3.0, math.nan, 0.0], "path": []}}  # fmt: skip
+    with pytest.raises(WireError, match="finite x, y, yaw"):
+        robot._command(bad)
+    assert len(robot.store.log) == 1  # type: ignore[union-attr]  # nothing executed
