@@ -432,7 +432,8 @@ def _fly(
     if flown.loop is not None:
         row["loop"] = {
             "stop_reason": flown.loop["stop_reason"],
-            "stations": flown.steps,
+            "stations": len(flown.loop["stations"]),
+            "pivots": flown.loop["pivots"],
             "work_per_dwell_p99_s": flown.loop["work_per_dwell_s"]["p99"],
             "localizations_late": sum(
                 not item["in_time"] for item in flown.loop["concurrent_localization"]

@@ -9,12 +9,19 @@ block it: a beacon behind what nobody has seen may be hidden).
 
 The explorer keeps the leapfrog of the paper: the reference turns in place to the heading from
 which it and a mapper around it see the most unknown space on the way to the nearest reachable
-frontier, among the headings from which the mapper, still standing where it was tied, sees its
-beacon at once (a mutual observation that ties the turn) when there are any; the mapper then
-takes the scan poses, in the reference's front sectors and facing it so that both beacons are
-in view, that add the most unknown space and bring the pair closer to that frontier, less a
-cost for the path. Poses already taken are not taken again; a frontier
+frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
+so that both beacons are in view, that add the most unknown space and bring the pair closer to
+that frontier, less a cost for the path. Poses already taken are not taken again; a frontier
 the pair has failed to shrink from several stations in a row is given up.
+
+A turn in place is measured only by odometry unless a mutual observation ties it, and the
+beacons see each other only between 15° and 45° off each robot's heading. So every turn is
+planned as a :class:`TurnPlan`: in parts of at most ``_PART_RAD``, and before each part the
+mapper drives to a pivot from which the reference sees its beacon both before and after that
+part (or it already stands at one). The dwell at the pivot ties it to the reference before the
+part, the station dwell after the part ties the turned reference to it: the chain of stations
+never rests on a turn that odometry alone measured. Each pivot costs ``_PIVOT_COST`` in the
+choice of heading.
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ from mapping.traversability import (
 )
 from sensors.sim.planner import FreeSpace
 
-__all__ = ["Explorer", "MapView", "ScanGoal"]
+__all__ = ["Explorer", "MapView", "ScanGoal", "TurnPlan"]
 
 #: Weights of a mapper pose's score, in floor cells: per metre of path driven, per metre still
 #: to go to the target frontier.
@@ -58,6 +65,12 @@ _MIN_FRONTIER_CELLS = 5
 _MIN_UNKNOWN_M2 = 4.0
 #: Unknown floor added around the known map, m.
 _BORDER_M = 1.0
+#: A turn is tied in parts of at most this much (a pivot pose must lie 15–45° off the heading
+#: before and after its part), in at most this many parts; each pivot the mapper drives to costs
+#: this much (cells) when the heading is chosen (a move and a dwell of some 35 s).
+_PART_RAD = math.radians(75.0)
+_MAX_PARTS = 3
+_PIVOT_COST = 200.0
 
 
 @dataclass(frozen=True)
@@ -186,6 +199,25 @@ def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
     return FloorMap(obstacle, free, floor.lower_xy, res)
 
 
+#: A part of a turn: the heading after it, and the pivot the mapper drives to before it.
+_Part = tuple[float, "ScanGoal | None"]
+
+
+@dataclass(frozen=True)
+class TurnPlan:
+    """The reference's turn to ``heading``: ``parts`` (heading after the part, the pivot the
+    mapper drives to before it, None if it already stands where the reference sees it before
+    and after). ``tied`` False: no chain of pivots was found; the turn is a single untied part."""
+
+    heading: float
+    parts: tuple[_Part, ...]
+    tied: bool
+
+    @property
+    def pivots(self) -> int:
+        return sum(1 for _, pivot in self.parts if pivot is not None)
+
+
 @dataclass
 class _Target:
     centroid: np.ndarray
@@ -253,7 +285,9 @@ class Explorer:
 
     def _candidates(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
                     others: list[np.ndarray], reachable: np.ndarray,
-                    exclude: list[np.ndarray]) -> list[np.ndarray]:  # fmt: skip
+                    exclude: list[np.ndarray], fresh: bool = True) -> list[np.ndarray]:  # fmt: skip
+        """Mapper poses around ``reference`` with both beacons in view, drivable and reachable,
+        clear of the other robots; ``fresh``: not taken before."""
         spacing = 2 * self.config.robot.footprint_radius_m + 0.3
         out = []
         for candidate in mapper_candidates(reference, view.geometry, self.band):
@@ -262,7 +296,9 @@ class Explorer:
                 continue
             if any(math.dist(xy, p[:2]) < spacing for p in others):
                 continue
-            if self._taken(candidate) or any(math.dist(xy, p[:2]) < _SAME_M for p in exclude):
+            if fresh and self._taken(candidate):
+                continue
+            if any(math.dist(xy, p[:2]) < _SAME_M for p in exclude):
                 continue
             if not view.geometry.mutual(reference, candidate, self.band):
                 continue
@@ -271,35 +307,94 @@ class Explorer:
 
     def heading(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
                 others: list[np.ndarray], frontier: Frontier | None,
-                look_first: bool = False) -> float | None:  # fmt: skip
-        """The reference's heading for its next station, or None if from no heading a
-        mapper pose around it would see its beacon. With ``look_first``, a heading facing
-        enough unexplored floor counts even before a mapper pose there is known: the
-        reference's own sweep at the station shows the floor the mapper will drive on."""
+                look_first: bool = False) -> TurnPlan | None:  # fmt: skip
+        """The reference's turn for its next station, or None if from no heading a mapper pose
+        around it would see its beacon. With ``look_first``, a heading facing enough unexplored
+        floor counts even before a mapper pose there is known: the reference's own sweep at the
+        station shows the floor the mapper will drive on. The heading with the best score less
+        the cost of the pivots that tie the turn wins; if no turn can be tied, the best
+        heading untied."""
         start = view.free_near(mapper[:2])
         if start is None:
             return None
         reachable = view.distances_from([start])
         goal = self._goal_field(view, frontier)
-        best, best_score = None, (False, -math.inf)
+        scored: list[tuple[float, float]] = []
         for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
             pose = np.array([reference[0], reference[1], heading])
             candidates = self._candidates(view, pose, mapper, others, reachable, [])
             own = view.coverage.gain(pose)
             if candidates:
                 values = [self._value(view, c, reachable, goal) for c in candidates[::2]]
-                score = max(values) + own
+                scored.append((max(values) + own, float(heading)))
             elif look_first and own >= _LOOK_FIRST_CELLS:
-                score = own - _LOOK_FIRST_COST
-            else:
+                scored.append((own - _LOOK_FIRST_COST, float(heading)))
+        if not scored:
+            return None
+        scored.sort(key=lambda item: -item[0])
+        best: tuple[float, TurnPlan] | None = None
+        for score, heading in scored:
+            if best is not None and score <= best[0]:
+                break  # the pivots only lower a score: no heading left can win
+            parts = self.tie(view, reference, heading, mapper, others)
+            if parts is None:
                 continue
-            # A heading from which the mapper, still where it was tied, sees the reference's
-            # beacon at once ties the turn by a mutual observation; otherwise only odometry and
-            # the station link measure it. Such a heading wins over every other.
-            tie = view.geometry.mutual(pose, mapper, (0.5, self.config.beacon.max_range_m))
-            if (tie, score) > best_score:
-                best, best_score = float(heading), (tie, score)
-        return best
+            plan = TurnPlan(heading, parts, True)
+            value = score - _PIVOT_COST * plan.pivots
+            if best is None or value > best[0]:
+                best = (value, plan)
+        if best is None:
+            heading = scored[0][1]
+            return TurnPlan(heading, ((heading, None),), False)
+        return best[1]
+
+    def tie(self, view: MapView, reference: np.ndarray, heading: float, mapper: np.ndarray,
+            others: list[np.ndarray]) -> tuple[_Part, ...] | None:  # fmt: skip
+        """The parts of the reference's turn to ``heading`` with their pivots (see
+        :class:`TurnPlan`), or None when some part has no pivot the mapper can reach."""
+        tie_band = (0.5, self.config.beacon.max_range_m)
+        turn = math.remainder(heading - reference[2], 2 * math.pi)
+        count = max(1, math.ceil(abs(turn) / _PART_RAD - 1e-9))
+        if count > _MAX_PARTS:
+            return None
+        parts: list[_Part] = []
+        at, before = np.asarray(mapper, dtype=float), np.asarray(reference, dtype=float)
+        for n in range(1, count + 1):
+            after = np.array([reference[0], reference[1], reference[2] + turn * n / count])
+            if n == count:
+                after[2] = heading
+            if view.geometry.mutual(after, at, tie_band):
+                parts.append((float(after[2]), None))
+            else:
+                pivot = self._pivot(view, before, after, at, others)
+                if pivot is None:
+                    return None
+                parts.append((float(after[2]), pivot))
+                at = pivot.pose
+            before = after
+        return tuple(parts)
+
+    def _pivot(self, view: MapView, before: np.ndarray, after: np.ndarray, at: np.ndarray,
+               others: list[np.ndarray]) -> ScanGoal | None:  # fmt: skip
+        """The nearest pose (by path from ``at``) from which the mapper sees the reference's
+        beacon, and the reference its beacon, both at heading ``before`` and ``after``."""
+        start = view.free_near(at[:2])
+        if start is None:
+            return None
+        reachable = view.distances_from([start])
+        candidates = [
+            c
+            for c in self._candidates(view, before, at, others, reachable, [], fresh=False)
+            if view.geometry.mutual(after, c, self.band)
+        ]
+        for candidate in sorted(candidates, key=lambda c: view.at(reachable, c[:2]))[:6]:
+            path = view.space.path(start, candidate[:2])
+            if path is None:
+                continue
+            if math.dist(start, at[:2]) > 1e-6:
+                path = [np.asarray(at[:2], dtype=float), *path]
+            return ScanGoal(candidate, path, -_PATH_COST * view.at(reachable, candidate[:2]))
+        return None
 
     def _value(self, view: MapView, candidate: np.ndarray, reachable: np.ndarray,
                goal: np.ndarray) -> float:  # fmt: skip

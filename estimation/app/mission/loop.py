@@ -39,7 +39,7 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import EventMaker
 from estimation.app.mission.estimated_map import EstimatedMap
-from estimation.app.mission.explore import Explorer, MapView
+from estimation.app.mission.explore import Explorer, MapView, TurnPlan
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.pipeline import finish_isam, isam_options, prepare
@@ -135,6 +135,8 @@ class MissionLoop:
         self.retries: list[str] = []
         self.refused: list[str] = []
         self.unobserved: list[str] = []
+        self.pivots = 0  # pivot poses driven to, to tie the reference's turns
+        self.untied: list[str] = []  # stations whose turn no mutual observation ties
         self.given_up: list[list[float]] = []
         self.changed: list[str] = []
         self.trace: list[dict[str, Any]] = []  # per station of an exploration
@@ -315,7 +317,7 @@ class MissionLoop:
         reason = f"station budget ({auto.stations}) spent"
         known: list[float] = []  # known floor (m²) after each station
         for k in range(auto.stations):
-            self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
+            self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
             if self.progress is not None:
                 self.progress(
                     f"station {k + 1} (budget {auto.stations}): robot {reference} references, "
@@ -337,7 +339,7 @@ class MissionLoop:
                 # Stuck (a corner, a doorway, a robot in the way): another pair tries, the
                 # reference among the robots the estimate already places.
                 reference, mapper = other_reference, other_mapper
-                self.fleet.log("roles", reference=reference, mapper=mapper, step=k)
+                self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
                 flown = self._station(k, explorer, reference, mapper, frontier)
             if flown is None:
                 where = "at the start " if k == 0 else ""
@@ -394,16 +396,11 @@ class MissionLoop:
                     return None
                 ref_pose, map_pose = self.pose(reference), self.pose(mapper)
                 others = [self.pose(n) for n in self.robots if n not in (reference, mapper)]
-                heading = explorer.heading(view, ref_pose, map_pose, [ref_pose, *others],
-                                           frontier, look_first)  # fmt: skip
-                if heading is None:
+                plan = explorer.heading(view, ref_pose, map_pose, [ref_pose, *others],
+                                        frontier, look_first)  # fmt: skip
+                if plan is None:
                     continue
-                target = np.array([ref_pose[0], ref_pose[1], heading])
-                turn = abs(math.remainder(heading - ref_pose[2], 2 * math.pi))
-                if turn > 1e-6 and self.go(reference, target, [ref_pose[:2], ref_pose[:2]]):
-                    at = _as_spec(target)
-                    self.dwell(phase="station", reference=reference, mapper=mapper, step=k)
-                    explorer.taken.append(self.pose(reference))
+                at = self._turn(explorer, reference, mapper, plan, at)
             station = _Station(reference, self.index[reference], self.now_s)
             for _ in range(self.mission.auto.scans_per_station):
                 if not self._scan(explorer, reference, mapper, frontier, scans):
@@ -418,6 +415,48 @@ class MissionLoop:
             "refused": len(self.refused),
         })  # fmt: skip
         return (at, scans, station) if scans else None
+
+    def _turn(self, explorer: Explorer, reference: str, mapper: str, plan: TurnPlan,
+              at: list[float] | None) -> list[float] | None:  # fmt: skip
+        """Fly a :class:`TurnPlan`. Before each part the mapper drives to its pivot and both
+        robots dwell (the mutual observation ties the pivot to the reference before the part);
+        the reference turns and both dwell (the observation ties the turned reference to the
+        pivot). Each pivot closes a step of the mission as flown (the turn before it, the pivot
+        as its scan). A pivot refused or not observed leaves the rest of the turn untied: the
+        reference turns to the final heading at once. Returns the last turn's pose (the
+        station's ``at``), or ``at`` if the reference did not turn."""
+        tied, turned = plan.tied, False
+        for heading, pivot in plan.parts:
+            final = heading
+            if pivot is not None:
+                moved = self.go(mapper, pivot.pose, pivot.path)
+                seen = moved and self.dwell(phase="mapping", reference=reference, mapper=mapper,
+                                            step=len(self.steps))  # fmt: skip
+                if moved:
+                    explorer.taken.append(pivot.pose)
+                    self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper,
+                                               scans=[_as_spec(pivot.pose)]))  # fmt: skip
+                    self.fleet.log("roles", reference=reference, mapper=mapper,
+                                   step=len(self.steps))  # fmt: skip
+                    self.pivots += 1
+                    at = None
+                if not seen:
+                    tied, final = False, plan.heading
+            ref_pose = self.pose(reference)
+            target = np.array([ref_pose[0], ref_pose[1], final])
+            if abs(math.remainder(final - ref_pose[2], 2 * math.pi)) > 1e-6 and self.go(
+                reference, target, [ref_pose[:2], ref_pose[:2]]
+            ):
+                at = _as_spec(target)
+                seen = self.dwell(phase="station", reference=reference, mapper=mapper,
+                                  step=len(self.steps))  # fmt: skip
+                tied, turned = tied and seen, True
+                explorer.taken.append(self.pose(reference))
+            if final == plan.heading:
+                break
+        if turned and not tied:
+            self.untied.append(f"{reference}{self.index[reference]}")
+        return at
 
     def _scan(self, explorer: Explorer, reference: str, mapper: str, frontier: Any,
               scans: list[list[float]]) -> bool:  # fmt: skip
@@ -508,6 +547,8 @@ class MissionLoop:
             "concurrent_localization": localizations,
             "retried_observations": self.retries,
             "unobserved_scans": self.unobserved,
+            "pivots": self.pivots,
+            "untied_turns": self.untied,
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "given_up_frontiers": self.given_up,
             "stations": self.trace,
