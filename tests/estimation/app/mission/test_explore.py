@@ -199,3 +199,74 @@ def test_a_frontier_that_comes_closer_is_kept() -> None:
     explorer.progress(None, 0.0)
     assert explorer.target is None
     assert explorer.given_up == []
+
+
+def test_a_turn_is_tied_at_once_or_through_pivots_seen_before_and_after_each_part(
+    view: MapView,
+) -> None:
+    explorer = Explorer(CONFIG, (1.5, 3.5))
+    reference = np.array([2.5, 2.0, math.radians(30.0)])
+    found = explorer.scan_pose(view, reference, np.array([1.0, 1.0, 0.0]), [reference], None, [])
+    assert found is not None
+    mapper = found.pose  # where the reference sees its beacon, facing it
+    wide = (0.5, CONFIG.beacon.max_range_m)
+    assert view.geometry.mutual(reference, mapper, wide)
+    pivots: dict[int, int] = {}
+    for degrees in range(0, 360, 15):
+        heading = math.radians(degrees)
+        chain = explorer.tie(view, reference, heading, mapper, [reference])
+        turn = abs(math.remainder(heading - reference[2], 2 * math.pi))
+        if chain is None:
+            continue
+        assert len(chain) == max(1, math.ceil(turn / explore._PART_RAD - 1e-9))
+        assert chain[-1][0] == heading
+        before, at = reference, mapper
+        for after_yaw, pivot in chain:
+            after = np.array([2.5, 2.0, after_yaw])
+            assert abs(math.remainder(after_yaw - before[2], 2 * math.pi)) <= (
+                explore._PART_RAD + 1e-9
+            )
+            if pivot is None:
+                assert view.geometry.mutual(after, at, wide)  # the mapper sees it already
+            else:
+                # Seen from the reference before the part and after it, on drivable floor,
+                # reached along a path from where the mapper stood.
+                assert view.geometry.mutual(before, pivot.pose, explorer.band)
+                assert view.geometry.mutual(after, pivot.pose, explorer.band)
+                assert view.space.is_free(pivot.pose[:2])
+                np.testing.assert_allclose(pivot.path[0], at[:2], atol=0.15)
+                np.testing.assert_allclose(pivot.path[-1], pivot.pose[:2])
+                at = pivot.pose
+            before = after
+        pivots[degrees] = sum(1 for _, p in chain if p is not None)
+    assert pivots[30] == 0  # no turn at all
+    assert {0, 1, 2} <= set(pivots.values())
+    # Facing the room's back wall (x = 0), 2.5 m behind: no pose 1.5 m off in front.
+    assert not {165, 180, 195} & set(pivots)
+
+
+def test_a_turn_no_pivot_can_tie_is_taken_untied(view: MapView) -> None:
+    explorer = Explorer(CONFIG, (1.5, 3.5))
+    # The mapper in the closet behind a wall without a door: it reaches no pivot.
+    reference = np.array([3.0, 2.0, 0.0])
+    closet = np.array([9.0, 2.0, math.pi])
+    assert explorer.tie(view, reference, math.radians(90.0), closet, [reference]) is None
+    plan = explorer.heading(view, reference, closet, [reference], None)
+    assert plan is None  # nor any mapper pose around the reference it could reach
+    explorer_b = Explorer(CONFIG, (1.5, 3.5))
+    mapper = np.array([1.0, 1.0, 0.0])
+    plan = explorer_b.heading(view, reference, mapper, [reference], None)
+    assert plan is not None
+    assert plan.tied
+    assert plan.parts[-1][0] == plan.heading
+    assert plan.pivots == sum(1 for _, p in plan.parts if p is not None)
+    # When no heading's turn can be tied: the best heading with a mapper pose, untied, and
+    # no untied turn only to look.
+    untieable = Explorer(CONFIG, (1.5, 3.5))
+    untieable.tie = lambda *args, **kwargs: None  # type: ignore[method-assign]
+    untied = untieable.heading(view, reference, mapper, [reference], None)
+    assert untied is not None
+    assert not untied.tied
+    assert untied.parts == ((untied.heading, None),)
+    assert untied.pivots == 0
+    assert untieable.heading(view, reference, mapper, [reference], None, look_first=True) is None
