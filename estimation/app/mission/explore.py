@@ -369,7 +369,7 @@ class Explorer:
             if view.geometry.mutual(after, at, tie_band):
                 parts.append((float(after[2]), None))
             else:
-                pivot = self._pivot(view, before, after, at, others)
+                pivot = self.pivot(view, before, after, at, others)
                 if pivot is None:
                     return None
                 parts.append((float(after[2]), pivot))
@@ -377,10 +377,12 @@ class Explorer:
             before = after
         return tuple(parts)
 
-    def _pivot(self, view: MapView, before: np.ndarray, after: np.ndarray, at: np.ndarray,
-               others: list[np.ndarray]) -> ScanGoal | None:  # fmt: skip
+    def pivot(self, view: MapView, before: np.ndarray, after: np.ndarray, at: np.ndarray,
+              others: list[np.ndarray],
+              exclude: list[np.ndarray] | None = None) -> ScanGoal | None:  # fmt: skip
         """The nearest pose (by path from ``at``) from which the mapper sees the reference's
-        beacon, and the reference its beacon, both at heading ``before`` and ``after``."""
+        beacon, and the reference its beacon, both at heading ``before`` and ``after``; not
+        within 30 cm of ``exclude`` (pivots that failed)."""
         start = view.free_near(at[:2])
         if start is None:
             return None

@@ -39,7 +39,7 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import EventMaker
 from estimation.app.mission.estimated_map import EstimatedMap
-from estimation.app.mission.explore import Explorer, MapView, TurnPlan
+from estimation.app.mission.explore import Explorer, MapView, ScanGoal, TurnPlan
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.pipeline import finish_isam, isam_options, prepare
@@ -82,6 +82,8 @@ class _Station:
     started_s: float
 
 
+#: A pose as the mission file writes it (x_m, y_m, yaw_deg), or None.
+_Spec = list[float] | None
 #: A station as flown: the reference's turn (None: it stayed), the scan poses, the station.
 _Flown = tuple[list[float] | None, list[list[float]], _Station]
 
@@ -136,7 +138,7 @@ class MissionLoop:
         self.refused: list[str] = []
         self.unobserved: list[str] = []
         self.pivots = 0  # pivot poses driven to, to tie the reference's turns
-        self.untied: list[str] = []  # stations whose turn no mutual observation ties
+        self.untied: dict[str, str] = {}  # stations whose turn no mutual observation ties: why
         self.given_up: list[list[float]] = []
         self.changed: list[str] = []
         self.trace: list[dict[str, Any]] = []  # per station of an exploration
@@ -421,27 +423,18 @@ class MissionLoop:
         """Fly a :class:`TurnPlan`. Before each part the mapper drives to its pivot and both
         robots dwell (the mutual observation ties the pivot to the reference before the part);
         the reference turns and both dwell (the observation ties the turned reference to the
-        pivot). Each pivot closes a step of the mission as flown (the turn before it, the pivot
-        as its scan). A pivot refused or not observed leaves the rest of the turn untied: the
-        reference turns to the final heading at once. Returns the last turn's pose (the
-        station's ``at``), or ``at`` if the reference did not turn."""
-        tied, turned = plan.tied, False
-        for heading, pivot in plan.parts:
+        pivot). A pivot refused or not observed is replaced by another, up to ``_RETRIES``
+        times; after that the rest of the turn is untied: the reference turns to the final
+        heading at once. Returns the last turn's pose (the station's ``at``), or ``at`` if the
+        reference did not turn."""
+        why = None if plan.tied else "no chain of pivots"
+        turned = False
+        for heading, planned in plan.parts:
             final = heading
-            if pivot is not None:
-                moved = self.go(mapper, pivot.pose, pivot.path)
-                seen = moved and self.dwell(phase="mapping", reference=reference, mapper=mapper,
-                                            step=len(self.steps))  # fmt: skip
-                if moved:
-                    explorer.taken.append(pivot.pose)
-                    self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper,
-                                               scans=[_as_spec(pivot.pose)]))  # fmt: skip
-                    self.fleet.log("roles", reference=reference, mapper=mapper,
-                                   step=len(self.steps))  # fmt: skip
-                    self.pivots += 1
-                    at = None
+            if planned is not None:
+                seen, at = self._pivot(explorer, reference, mapper, planned, heading, at)
                 if not seen:
-                    tied, final = False, plan.heading
+                    why, final = why or "no pivot observed", plan.heading
             ref_pose = self.pose(reference)
             target = np.array([ref_pose[0], ref_pose[1], final])
             if abs(math.remainder(final - ref_pose[2], 2 * math.pi)) > 1e-6 and self.go(
@@ -450,13 +443,54 @@ class MissionLoop:
                 at = _as_spec(target)
                 seen = self.dwell(phase="station", reference=reference, mapper=mapper,
                                   step=len(self.steps))  # fmt: skip
-                tied, turned = tied and seen, True
+                if not seen:
+                    why = why or "the turned reference did not see the pivot"
+                turned = True
                 explorer.taken.append(self.pose(reference))
             if final == plan.heading:
                 break
-        if turned and not tied:
-            self.untied.append(f"{reference}{self.index[reference]}")
+        if turned and why is not None:
+            self.untied[f"{reference}{self.index[reference]}"] = why
         return at
+
+    def _pivot(self, explorer: Explorer, reference: str, mapper: str, goal: ScanGoal | None,
+               heading: float, at: _Spec) -> tuple[bool, _Spec]:  # fmt: skip
+        """Drive the mapper to a pivot for the reference's turn to ``heading`` and dwell; on a
+        refused goal or a missed observation, the next pivot. Each pivot taken closes a step of
+        the mission as flown (``at``, the turn before it, and the pivot as its one scan).
+        Returns whether a pivot was observed, and the ``at`` of the step now open."""
+        failed: list[np.ndarray] = []
+        for _ in range(_RETRIES + 1):
+            if goal is None:
+                view = self._view()
+                if view is None:
+                    break
+                before = self.pose(reference)
+                after = np.array([before[0], before[1], heading])
+                others = [self.pose(n) for n in self.robots if n != mapper]
+                goal = explorer.pivot(view, before, after, self.pose(mapper), others, failed)
+                if goal is None:
+                    break
+            if not self.go(mapper, goal.pose, goal.path):
+                failed.append(goal.pose)
+                goal = None
+                continue
+            explorer.taken.append(goal.pose)
+            seen = self.dwell(phase="mapping", reference=reference, mapper=mapper,
+                              step=len(self.steps))  # fmt: skip
+            self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper,
+                                       scans=[_as_spec(goal.pose)]))  # fmt: skip
+            self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
+            self.pivots += 1
+            at = None
+            if seen:
+                return True, at
+            failed.append(goal.pose)
+            self.retries.append(
+                f"{mapper}{self.index[mapper]} pivot of {reference}{self.index[reference]}"
+            )
+            goal = None
+        return False, at
 
     def _scan(self, explorer: Explorer, reference: str, mapper: str, frontier: Any,
               scans: list[list[float]]) -> bool:  # fmt: skip
