@@ -322,6 +322,13 @@ class GraphConfig(_Section):
     )
     robust: RobustKernel = "gnc_tls"
     gate_sigmas: float = Field(3.0, gt=0, description="s1/s2 gate in predicted standard devs")
+    mutual_scale_min: float | None = Field(
+        0.1,
+        gt=0,
+        le=1,
+        description="scale the mutual observations' noise by the spread of their s1/s2 gaps "
+        "so far, down to this factor (null: the beacon noise as configured)",
+    )
     validator_mass: float = Field(
         0.99, gt=0, lt=1, description="PDF mass of the high-probability region"
     )

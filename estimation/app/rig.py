@@ -118,6 +118,7 @@ def graph_settings(config: Config) -> GraphSettings:
         dominance_ratio=config.search.dominance_ratio,
         peak_radius_m=config.search.peak_radius_m,
         peak_radius_rad=math.radians(config.search.peak_radius_deg),
+        mutual_scale_min=g.mutual_scale_min,
     )
 
 

@@ -58,6 +58,9 @@ __all__ = [
 ]
 
 FactorKind = Literal["prior", "odometry", "mutual", "global"]
+#: Gaps needed before the mutual observations' noise follows them, and the largest factor.
+_GAP_SAMPLES = 10
+_MAX_MUTUAL_SCALE = 3.0
 RobustKernel = Literal["none", "huber", "cauchy"]
 
 
@@ -66,6 +69,9 @@ class GraphSettings:
     """Explicit noise models and gates of the pose graph (SI units; defaults = configs/default).
 
     ``prediction_gate_probability`` None switches the prediction gate off.
+    ``mutual_scale_min``: the mutual observations' covariance is scaled by the spread of the
+    s1 − s2 gaps accepted so far (:meth:`GraphBuilder.mutual_scale`), down to this factor of
+    the standard deviations; None keeps the configured noise as it is.
     """
 
     prior_sigma_m: float = 0.001
@@ -85,6 +91,7 @@ class GraphSettings:
     dominance_ratio: float = 2.0
     peak_radius_m: float = 0.5
     peak_radius_rad: float = math.radians(10.0)
+    mutual_scale_min: float | None = 0.1
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
@@ -93,6 +100,10 @@ class GraphSettings:
             positive_or_zero = name in ("odometry_sigma_per_m", "odometry_sigma_rad_per_rad")
             if not math.isfinite(value) or value < 0 or (value == 0 and not positive_or_zero):
                 raise EstimationError(f"GraphSettings.{name} must be positive, got {value}")
+        if self.mutual_scale_min is not None and self.mutual_scale_min > 1:
+            raise EstimationError(
+                f"GraphSettings.mutual_scale_min must be at most 1: {self.mutual_scale_min}"
+            )
         p = self.prediction_gate_probability
         if p is not None and not 0 < p < 1:
             raise EstimationError(
@@ -240,6 +251,7 @@ class GraphBuilder:
         self._latest: dict[str, int] = {}
         self._steps: dict[str, dict[int, _Step]] = {}
         self._fixes: dict[tuple[str, str], tuple[int, int, np.ndarray, np.ndarray]] = {}
+        self._gaps: list[float] = []  # |s1 - s2| / its predicted deviation, accepted so far
         self._events = 0
         s = self.settings
         self._gate_chi2 = (
@@ -254,6 +266,24 @@ class GraphBuilder:
     def events(self) -> int:
         """Events consumed so far."""
         return self._events
+
+    def mutual_scale(self) -> float:
+        """The factor on the standard deviations of the next mutual observation's factor.
+
+        The s1 − s2 gap of an observation is the one redundancy of its four measurements, with a
+        predicted deviation from the configured range and bearing noise. The robust spread of
+        the gaps accepted so far (1.4826 × the median of |gap| / predicted deviation) tells how
+        much noisier or cleaner the beacon measurements are than configured: a detection
+        averages many returns, which a per-return noise model does not know. Until
+        ``_GAP_SAMPLES`` gaps are in, and with ``mutual_scale_min`` None, it is 1; it is kept
+        within [``mutual_scale_min``, ``_MAX_MUTUAL_SCALE``]. The gates always use the
+        configured noise. It depends only on the events before, in order: the mission loop
+        and ``batch`` on its recording weigh every observation alike."""
+        low = self.settings.mutual_scale_min
+        if low is None or len(self._gaps) < _GAP_SAMPLES:
+            return 1.0
+        spread = 1.4826 * float(np.median(self._gaps))
+        return float(np.clip(spread, low, _MAX_MUTUAL_SCALE))
 
     def initial_values(self) -> dict[int, np.ndarray]:
         """The current guess of every pose (batch initial values; seeds applied)."""
@@ -411,7 +441,10 @@ class GraphBuilder:
             T_inv, cov_inv = _inverse_with_covariance(T, cov)
             self._refine_guess(ka, se2.compose(self.guesses[kc], T_inv), cov_inv, "observe")
         self._remember_fix(ra, ia, rc, ic, T, cov)
-        return Increment(number, (FactorSpec("mutual", (ka, kc), T, cov, number),), values)
+        scale = self.mutual_scale()
+        self._gaps.append(fix.gap_sigmas)
+        factor = FactorSpec("mutual", (ka, kc), T, cov * scale**2, number)
+        return Increment(number, (factor,), values)
 
     def _localize(self, event: Localize, number: int) -> Increment:
         s = self.settings

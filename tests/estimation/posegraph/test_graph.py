@@ -401,3 +401,50 @@ def test_leapfrog_stream_builds_a_consistent_graph() -> None:
     chi2_at_truth = [f.mahalanobis2(scenario.truth) for f in builder.factors if f.kind != "prior"]
     # calibrated noise: mean χ² per 3-dof factor near 3
     assert np.mean(chi2_at_truth) == pytest.approx(3.0, abs=0.6)
+
+
+@pytest.mark.parametrize(
+    ("noise", "low", "high"),
+    [(0.03, 0.1, 0.1), (1.0, 0.75, 1.3), (2.0, 1.5, 2.6), (1.0, 1.0, 1.0)],
+)
+def test_mutual_noise_follows_the_gaps_accepted_so_far(
+    noise: float, low: float, high: float
+) -> None:
+    # Measurements ``noise`` times as noisy as configured: after ten observations each factor's
+    # standard deviations are the configured ones times the gaps' robust spread (≈ noise),
+    # never below ``mutual_scale_min``; the last case switches the scaling off.
+    off = (noise, low, high) == (1.0, 1.0, 1.0)
+    settings = GraphSettings(mutual_scale_min=None) if off else S
+    builder = GraphBuilder(settings)
+    builder.add(Start("a", 0, (0.0, 0.0, 0.0)))
+    rng = np.random.default_rng(4)
+    sigmas = np.array([S.range_sigma_m, S.bearing_sigma_rad] * 2)
+    ratios = []
+    for i in range(60):
+        T_b = np.array([2.0 + 0.02 * i, 1.5 - 0.03 * i, math.pi - 0.4 + 0.01 * i])
+        z = mutual_measurements(np.zeros(3), T_b, S) + noise * sigmas * rng.standard_normal(4)
+        before = builder.mutual_scale()
+        increment = builder.add(Observe(("a", 0), ("b", i), *z))
+        if increment.rejection is not None:
+            continue
+        fix = localize_mutual(*z, S.beacon_offset_m, S.range_sigma_m, S.bearing_sigma_rad,
+                              S.gate_sigmas, "ml")  # fmt: skip
+        factor = increment.factors[0]
+        # The factor's covariance against the configured one, in the robot frames.
+        _, configured = mutual_between(fix.pose, fix.covariance, S.scanner_x_m)
+        ratio = math.sqrt(float(np.trace(factor.covariance) / np.trace(configured)))
+        assert ratio == pytest.approx(before)
+        ratios.append(ratio)
+    assert len(ratios) >= 50  # the s1/s2 gate (3σ of the configured noise) kept most
+    assert ratios[:10] == pytest.approx([1.0] * 10)
+    # Within the clip always; near the truth once the gaps are many (a median of ten still
+    # scatters by tens of per cent).
+    assert all(0.1 - 1e-9 <= r <= 3.0 + 1e-9 for r in ratios)
+    assert low - 1e-9 <= float(np.mean(ratios[-10:])) <= high + 1e-9
+
+
+def test_mutual_scale_min_is_validated() -> None:
+    with pytest.raises(EstimationError, match=r"mutual_scale_min must be at most 1"):
+        GraphSettings(mutual_scale_min=1.5)
+    with pytest.raises(EstimationError, match=r"GraphSettings\.mutual_scale_min must be positive"):
+        GraphSettings(mutual_scale_min=0.0)
