@@ -125,9 +125,14 @@ def frontiers(
     standing there can reach. Frontiers of fewer than ``min_cells`` cells are dropped, and
     with ``min_unknown_m2`` those that border only unknown patches smaller than that (the
     shadow behind a desk, not the room beyond a door; unknown space that reaches the map's
-    border is never small)."""
+    border is never small).
+
+    Only unknown floor farther than ``robot_radius_m`` from every obstacle counts: where a
+    robot could stand. A gap in a wall that the scans missed (narrower than the robot) then
+    opens onto nothing, and the corner behind it is no longer joined to the unknown space
+    beyond the wall; a doorway wider than the robot still opens onto the room behind it."""
     res = floor.resolution_m
-    unknown = large_unknown(floor, min_unknown_m2) if min_unknown_m2 > 0 else floor.unknown
+    unknown = _passable_unknown(floor, robot_radius_m, min_unknown_m2)
     # Where seen free floor meets unknown floor; unknown space that meets only obstacles (the
     # far side of a wall) is no frontier.
     cross = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
@@ -148,6 +153,26 @@ def frontiers(
         centroid = floor.lower_xy + (cells[:, ::-1].mean(axis=0) + 0.5) * res
         found.append(Frontier(cells, centroid, len(cells)))
     return sorted(found, key=lambda f: -f.size)
+
+
+def _passable_unknown(floor: FloorMap, radius_m: float, min_unknown_m2: float) -> np.ndarray:
+    """The unknown cells farther than ``radius_m`` from every obstacle cell, in connected regions
+    (8-connected) whose unknown floor — the region and the unknown cells within ``radius_m`` of
+    it — covers at least ``min_unknown_m2``, or reaches the map's border."""
+    res = floor.resolution_m
+    unknown = floor.unknown
+    # Distances run between cell centres: an obstacle cell's edge lies half a cell nearer.
+    clearance = ndimage.distance_transform_edt(~floor.obstacle) * res - res / 2
+    passable = unknown & (clearance > radius_m)
+    if min_unknown_m2 <= 0 or not passable.any():
+        return np.asarray(passable)
+    labels, count = ndimage.label(passable, structure=np.ones((3, 3)))
+    distance, (rows, cols) = ndimage.distance_transform_edt(~passable, return_indices=True)
+    grown = np.where(unknown & (distance * res <= radius_m + res), labels[rows, cols], 0)
+    large = np.bincount(grown.ravel(), minlength=count + 1) * res * res >= min_unknown_m2
+    large[np.concatenate([grown[0], grown[-1], grown[:, 0], grown[:, -1]])] = True
+    large[0] = False
+    return np.asarray(large[labels])
 
 
 def large_unknown(floor: FloorMap, min_unknown_m2: float) -> np.ndarray:

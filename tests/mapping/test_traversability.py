@@ -181,6 +181,35 @@ def test_unknown_space_beyond_the_map_border_is_never_small() -> None:
     assert len(frontiers(enclosed, space, robot_radius_m=0.3)) == 2
 
 
+def room_above_unknown(gap_m: float) -> FloorMap:
+    """An 8 m × 6 m map: a room seen free above a wall at y = 1.0-1.1 m, with a gap of
+    ``gap_m`` at x = 3.0 m that the scans saw nothing through; below the wall, 8 m² nobody saw."""
+    rows, cols = 60, 80
+    obstacle = np.zeros((rows, cols), dtype=bool)
+    obstacle[-1, :] = True
+    obstacle[11:, [0, -1]] = True
+    obstacle[10, :] = True
+    gap = slice(30, 30 + round(gap_m / RES))
+    obstacle[10, gap] = False
+    free = np.zeros_like(obstacle)
+    free[11:-1, 1:-1] = True
+    return FloorMap(obstacle, free, np.zeros(2), RES)
+
+
+@pytest.mark.parametrize("min_unknown_m2", [0.0, 4.0])
+def test_a_gap_in_a_wall_narrower_than_the_robot_opens_onto_nothing(min_unknown_m2: float) -> None:
+    for gap_m, expected in ((0.3, 0), (0.5, 0), (1.0, 1)):
+        floor = room_above_unknown(gap_m)
+        space = drivable_space(floor, robot_radius_m=0.3)
+        found = frontiers(floor, space, robot_radius_m=0.3, min_unknown_m2=min_unknown_m2,
+                          from_xy=(4.0, 3.0))  # fmt: skip
+        assert len(found) == expected, gap_m
+        if expected:
+            # The doorway: its frontier lies in front of the gap, in the room.
+            assert found[0].centroid_xy[0] == pytest.approx(3.5, abs=0.2)
+            assert 1.1 < found[0].centroid_xy[1] < 2.0
+
+
 def slab_grid(occupied_xy: list[tuple[float, float]]) -> OccupancyGrid:
     """A 5 m × 2 m layer of cells seen free at z 0.4-0.5 m, with occupied cells at
     ``occupied_xy``; everything else unknown."""
