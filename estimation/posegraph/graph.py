@@ -38,7 +38,7 @@ from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize, Move, Observe, Start
 from estimation.posegraph.keys import check_robot, key_label, pose_key, split_key
-from estimation.posegraph.mutual import check_observation, localize_mutual
+from estimation.posegraph.mutual import check_observation, gap_scale, localize_mutual
 from estimation.posegraph.seed import seed_pose
 from estimation.posepdf import PosePdf
 from sensors.geometry import se2
@@ -58,9 +58,6 @@ __all__ = [
 ]
 
 FactorKind = Literal["prior", "odometry", "mutual", "global"]
-#: Gaps needed before the mutual observations' noise follows them, and the largest factor.
-_GAP_SAMPLES = 10
-_MAX_MUTUAL_SCALE = 3.0
 RobustKernel = Literal["none", "huber", "cauchy"]
 
 
@@ -268,22 +265,11 @@ class GraphBuilder:
         return self._events
 
     def mutual_scale(self) -> float:
-        """The factor on the standard deviations of the next mutual observation's factor.
-
-        The s1 − s2 gap of an observation is the one redundancy of its four measurements, with a
-        predicted deviation from the configured range and bearing noise. The robust spread of
-        the gaps accepted so far (1.4826 × the median of |gap| / predicted deviation) tells how
-        much noisier or cleaner the beacon measurements are than configured: a detection
-        averages many returns, which a per-return noise model does not know. Until
-        ``_GAP_SAMPLES`` gaps are in, and with ``mutual_scale_min`` None, it is 1; it is kept
-        within [``mutual_scale_min``, ``_MAX_MUTUAL_SCALE``]. The gates always use the
-        configured noise. It depends only on the events before, in order: the mission loop
-        and ``batch`` on its recording weigh every observation alike."""
-        low = self.settings.mutual_scale_min
-        if low is None or len(self._gaps) < _GAP_SAMPLES:
-            return 1.0
-        spread = 1.4826 * float(np.median(self._gaps))
-        return float(np.clip(spread, low, _MAX_MUTUAL_SCALE))
+        """The factor on the standard deviations of the next mutual observation's factor
+        (:func:`~estimation.posegraph.mutual.gap_scale` of the gaps accepted so far). It
+        depends only on the events before, in order: the mission loop and ``batch`` on its
+        recording weigh every observation alike; the gates keep the configured noise."""
+        return gap_scale(self._gaps, self.settings.mutual_scale_min)
 
     def initial_values(self) -> dict[int, np.ndarray]:
         """The current guess of every pose (batch initial values; seeds applied)."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import cmath
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -34,11 +35,14 @@ from sensors.geometry.se2 import wrap_angle
 __all__ = [
     "DEFAULT_MIN_RANGE_M",
     "DEFAULT_MIN_SEPARATION_M",
+    "GAP_SAMPLES",
+    "MAX_GAP_SCALE",
     "MutualFix",
     "check_observation",
     "closed_form",
     "closed_form_jacobian",
     "cramer_rao_bound",
+    "gap_scale",
     "gap_sigma",
     "localize_mutual",
     "measurement_jacobian",
@@ -398,3 +402,22 @@ def localize_mutual(
         gate_sigmas=float(gate_sigmas),
         method=method,
     )
+
+
+#: Gaps needed before the mutual observations' noise follows them, and the largest factor.
+GAP_SAMPLES = 10
+MAX_GAP_SCALE = 3.0
+
+
+def gap_scale(gaps: Sequence[float], low: float | None) -> float:
+    """The factor on a mutual observation's standard deviations that the s1 − s2 gaps of the
+    observations accepted before it call for (``gaps``: |gap| / its predicted deviation).
+
+    The gap is the one redundancy of the four measurements; its predicted deviation comes from
+    the configured range and bearing noise. A detection fits one circle to tens of returns, so
+    it is much cleaner than one return's noise: the gaps' robust spread (1.4826 × their median)
+    says by how much. 1 until ``GAP_SAMPLES`` gaps are in, or with ``low`` None; else within
+    [``low``, ``MAX_GAP_SCALE``]."""
+    if low is None or len(gaps) < GAP_SAMPLES:
+        return 1.0
+    return float(np.clip(1.4826 * float(np.median(gaps)), low, MAX_GAP_SCALE))

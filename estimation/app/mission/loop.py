@@ -39,12 +39,14 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import EventMaker
 from estimation.app.mission.estimated_map import EstimatedMap
-from estimation.app.mission.explore import Explorer, MapView, ScanGoal, TurnPlan
+from estimation.app.mission.explore import Explorer, MapView
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
+from estimation.app.mission.turns import RETRIES, fly_turn
 from estimation.app.pipeline import finish_isam, isam_options, prepare
 from estimation.app.results import BatchOutput
 from estimation.app.rig import scan_limits, station_params
+from estimation.app.sim.planning import as_spec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import IncrementalSmoother
 from estimation.search.stations import records_json
@@ -61,8 +63,6 @@ Progress = Callable[[str], None]
 #: Exploration ends when the known floor grew by less than this (m²) over this many stations:
 #: what frontiers are left cannot be resolved from the floor the robots can reach.
 _STALL_M2, _STALL_STATIONS = 2.0, 10
-#: A planned mutual observation that failed is retried from this many other poses.
-_RETRIES = 2
 
 
 @dataclass
@@ -82,8 +82,6 @@ class _Station:
     started_s: float
 
 
-#: A pose as the mission file writes it (x_m, y_m, yaw_deg), or None.
-_Spec = list[float] | None
 #: A station as flown: the reference's turn (None: it stayed), the scan poses, the station.
 _Flown = tuple[list[float] | None, list[list[float]], _Station]
 
@@ -325,7 +323,7 @@ class MissionLoop:
                     f"station {k + 1} (budget {auto.stations}): robot {reference} references, "
                     f"robot {mapper} maps; {self.now_s:.0f} s flown"
                 )
-            view = self._view()
+            view = self.view()
             if view is None:
                 reason = "the estimated map holds no floor"
                 break
@@ -352,7 +350,7 @@ class MissionLoop:
             at, scans, station = flown
             self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
             self._station_done(station)
-            view = self._view()
+            view = self.view()
             if view is not None and frontier is not None:
                 reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
                 cells = frontier.cells
@@ -393,7 +391,7 @@ class MissionLoop:
         # it); if no scan pose comes of it, one from which a scan pose is already known.
         for look_first in (True, False) if k > 0 else (False,):
             if k > 0:
-                view = self._view()
+                view = self.view()
                 if view is None:
                     return None
                 ref_pose, map_pose = self.pose(reference), self.pose(mapper)
@@ -402,7 +400,7 @@ class MissionLoop:
                                         frontier, look_first)  # fmt: skip
                 if plan is None:
                     continue
-                at = self._turn(explorer, reference, mapper, plan, at)
+                at = fly_turn(self, explorer, reference, mapper, plan, at)
             station = _Station(reference, self.index[reference], self.now_s)
             for _ in range(self.mission.auto.scans_per_station):
                 if not self._scan(explorer, reference, mapper, frontier, scans):
@@ -411,94 +409,20 @@ class MissionLoop:
                 break
         self.trace.append({
             "step": k, "reference": f"{reference}{self.index[reference]}",
-            "pose": _as_spec(self.pose(reference)), "scans": len(scans),
+            "pose": as_spec(self.pose(reference)), "scans": len(scans),
             "frontier": None if frontier is None else [round(float(v), 2)
                                                        for v in frontier.centroid_xy],
             "refused": len(self.refused),
         })  # fmt: skip
         return (at, scans, station) if scans else None
 
-    def _turn(self, explorer: Explorer, reference: str, mapper: str, plan: TurnPlan,
-              at: list[float] | None) -> list[float] | None:  # fmt: skip
-        """Fly a :class:`TurnPlan`. Before each part the mapper drives to its pivot and both
-        robots dwell (the mutual observation ties the pivot to the reference before the part);
-        the reference turns and both dwell (the observation ties the turned reference to the
-        pivot). A pivot refused or not observed is replaced by another, up to ``_RETRIES``
-        times; after that the rest of the turn is untied: the reference turns to the final
-        heading at once. Returns the last turn's pose (the station's ``at``), or ``at`` if the
-        reference did not turn."""
-        why = None if plan.tied else "no chain of pivots"
-        turned = False
-        for heading, planned in plan.parts:
-            final = heading
-            if planned is not None:
-                seen, at = self._pivot(explorer, reference, mapper, planned, heading, at)
-                if not seen:
-                    why, final = why or "no pivot observed", plan.heading
-            ref_pose = self.pose(reference)
-            target = np.array([ref_pose[0], ref_pose[1], final])
-            if abs(math.remainder(final - ref_pose[2], 2 * math.pi)) > 1e-6 and self.go(
-                reference, target, [ref_pose[:2], ref_pose[:2]]
-            ):
-                at = _as_spec(target)
-                seen = self.dwell(phase="station", reference=reference, mapper=mapper,
-                                  step=len(self.steps))  # fmt: skip
-                if not seen:
-                    why = why or "the turned reference did not see the pivot"
-                turned = True
-                explorer.taken.append(self.pose(reference))
-            if final == plan.heading:
-                break
-        if turned and why is not None:
-            self.untied[f"{reference}{self.index[reference]}"] = why
-        return at
-
-    def _pivot(self, explorer: Explorer, reference: str, mapper: str, goal: ScanGoal | None,
-               heading: float, at: _Spec) -> tuple[bool, _Spec]:  # fmt: skip
-        """Drive the mapper to a pivot for the reference's turn to ``heading`` and dwell; on a
-        refused goal or a missed observation, the next pivot. Each pivot taken closes a step of
-        the mission as flown (``at``, the turn before it, and the pivot as its one scan).
-        Returns whether a pivot was observed, and the ``at`` of the step now open."""
-        failed: list[np.ndarray] = []
-        for _ in range(_RETRIES + 1):
-            if goal is None:
-                view = self._view()
-                if view is None:
-                    break
-                before = self.pose(reference)
-                after = np.array([before[0], before[1], heading])
-                others = [self.pose(n) for n in self.robots if n != mapper]
-                goal = explorer.pivot(view, before, after, self.pose(mapper), others, failed)
-                if goal is None:
-                    break
-            if not self.go(mapper, goal.pose, goal.path):
-                failed.append(goal.pose)
-                goal = None
-                continue
-            explorer.taken.append(goal.pose)
-            seen = self.dwell(phase="mapping", reference=reference, mapper=mapper,
-                              step=len(self.steps))  # fmt: skip
-            self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper,
-                                       scans=[_as_spec(goal.pose)]))  # fmt: skip
-            self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
-            self.pivots += 1
-            at = None
-            if seen:
-                return True, at
-            failed.append(goal.pose)
-            self.retries.append(
-                f"{mapper}{self.index[mapper]} pivot of {reference}{self.index[reference]}"
-            )
-            goal = None
-        return False, at
-
     def _scan(self, explorer: Explorer, reference: str, mapper: str, frontier: Any,
               scans: list[list[float]]) -> bool:  # fmt: skip
         """One scan pose of the mapper around the reference, retried from other poses when
         the mutual observation fails; False when no pose is left."""
         failed: list[np.ndarray] = []
-        for attempt in range(_RETRIES + 1):
-            view = self._view()
+        for attempt in range(RETRIES + 1):
+            view = self.view()
             if view is None:
                 return False
             others = [self.pose(n) for n in self.robots if n != mapper]
@@ -512,18 +436,18 @@ class MissionLoop:
             explorer.taken.append(goal.pose)
             seen = self.dwell(phase="mapping", reference=reference, mapper=mapper,
                               step=len(self.steps))  # fmt: skip
-            scans.append(_as_spec(goal.pose))
+            scans.append(as_spec(goal.pose))
             if seen:
                 return True
             failed.append(goal.pose)
             label = f"{mapper}{self.index[mapper]} around {reference}{self.index[reference]}"
-            if attempt < _RETRIES:
+            if attempt < RETRIES:
                 self.retries.append(label)
             else:
                 self.unobserved.append(label)
         return True
 
-    def _view(self) -> MapView | None:
+    def view(self) -> MapView | None:
         """The planner's view of the map now; built again only when a dwell, an event or a
         move changed what it is made of (a station asks for it several times)."""
         state = (self._dwells, self.smoother.events, tuple(self.index.values()))
@@ -632,8 +556,3 @@ class MissionLoop:
             (math.hypot(*(final[k][:2] - online[k][:2])) for k in shared), default=0.0
         )
         return LoopResult(output, self.steps, stop_reason, loop)
-
-
-def _as_spec(pose: np.ndarray) -> list[float]:
-    return [round(float(pose[0]), 3), round(float(pose[1]), 3),
-            round(math.degrees(math.remainder(float(pose[2]), 2 * math.pi)), 2)]  # fmt: skip

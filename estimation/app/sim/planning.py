@@ -34,6 +34,7 @@ __all__ = [
     "BeaconGeometry",
     "CoverageModel",
     "Route",
+    "as_spec",
     "grid_graph",
     "mapper_candidates",
     "mutual_dwells",
@@ -231,7 +232,7 @@ def mapper_candidates(
     return out
 
 
-def _as_spec(pose: np.ndarray) -> list[float]:
+def as_spec(pose: np.ndarray) -> list[float]:
     return [round(float(pose[0]), 3), round(float(pose[1]), 3),
             round(math.degrees(math.remainder(float(pose[2]), 2 * math.pi)), 2)]  # fmt: skip
 
@@ -287,7 +288,7 @@ def plan_leapfrog(
             if abs(math.remainder(heading - ref[2], 2 * math.pi)) > 1e-6:
                 ref = np.array([ref[0], ref[1], heading])
                 poses[reference] = ref
-                at = _as_spec(ref)
+                at = as_spec(ref)
         scans: list[list[float]] = []
         current = poses[mapper]
         for _ in range(auto.scans_per_station):
@@ -313,7 +314,7 @@ def plan_leapfrog(
             if best is None:
                 break
             coverage.add(best)
-            scans.append(_as_spec(best))
+            scans.append(as_spec(best))
             current = best
         if not scans:
             if k == 0:

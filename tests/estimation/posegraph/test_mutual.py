@@ -10,11 +10,14 @@ from scipy.stats import chi2
 
 from estimation.errors import EstimationError
 from estimation.posegraph.mutual import (
+    GAP_SAMPLES,
+    MAX_GAP_SCALE,
     _refine_one,
     check_observation,
     closed_form,
     closed_form_jacobian,
     cramer_rao_bound,
+    gap_scale,
     gap_sigma,
     localize_mutual,
     measurement_jacobian,
@@ -227,3 +230,13 @@ def test_non_positive_beacon_offset_and_sigmas_are_errors() -> None:
 
 def test_check_observation_passes_a_sound_event() -> None:
     check_observation(2.0, 0.5, 2.0, -0.5, D)
+
+
+def test_gap_scale_is_the_robust_spread_of_the_gaps_within_its_bounds() -> None:
+    assert gap_scale([0.01] * (GAP_SAMPLES - 1), 0.1) == 1.0  # too few gaps yet
+    assert gap_scale([0.01] * 50, None) == 1.0  # switched off
+    assert gap_scale([0.01] * 50, 0.1) == pytest.approx(0.1)  # never below ``low``
+    assert gap_scale([0.3] * 50, 0.1) == pytest.approx(1.4826 * 0.3)
+    assert gap_scale([10.0] * 50, 0.1) == MAX_GAP_SCALE
+    # The median: a few wild gaps do not move it.
+    assert gap_scale([0.5] * 40 + [3.0] * 9, 0.1) == pytest.approx(1.4826 * 0.5)
