@@ -57,8 +57,10 @@ _FRONTIER_COST = 200.0
 _LOOK_FIRST_CELLS, _LOOK_FIRST_COST = 200, 300.0
 #: Two poses closer than this (m, rad) are the same pose.
 _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
-#: A frontier whose distance did not shrink for this many stations is given up.
+#: A frontier is given up after this many stations in a row that neither brought the robots
+#: this much nearer nor grew the known floor within this radius of it by this much.
 _PATIENCE = 3
+_PROGRESS_M, _PROGRESS_M2, _PROGRESS_RADIUS_M = 0.3, 0.5, 3.0
 #: A frontier counts when it has this many cells and borders at least this much unknown floor
 #: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
@@ -222,7 +224,19 @@ class TurnPlan:
 class _Target:
     centroid: np.ndarray
     best_m: float
+    known_m2: float
     stale: int = 0
+
+
+def _known_near(view: MapView, xy: np.ndarray) -> float:
+    """Known floor (m²) within ``_PROGRESS_RADIUS_M`` of ``xy``."""
+    floor = view.floor
+    res = floor.resolution_m
+    rows, cols = np.indices(floor.shape)
+    x = floor.lower_xy[0] + (cols + 0.5) * res
+    y = floor.lower_xy[1] + (rows + 0.5) * res
+    near = np.hypot(x - xy[0], y - xy[1]) <= _PROGRESS_RADIUS_M
+    return float((near & ~floor.unknown).sum()) * res * res
 
 
 @dataclass
@@ -233,6 +247,7 @@ class Explorer:
     band: tuple[float, float]
     taken: list[np.ndarray] = field(default_factory=list)  # every pose any robot took
     given_up: list[np.ndarray] = field(default_factory=list)  # frontier centroids
+    retried: list[np.ndarray] = field(default_factory=list)  # given up once, tried again
     target: _Target | None = None
 
     def _taken(self, pose: np.ndarray) -> bool:
@@ -243,35 +258,47 @@ class Explorer:
         )
 
     def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Frontier | None:
-        """The reachable frontier nearest (by path) to any of ``from_xy``, not given up."""
+        """The reachable frontier nearest (by path) to any of ``from_xy``, not given up. When
+        only given-up frontiers are left, each gets one more chance (the map has grown since);
+        one given up twice stays given up."""
         starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
         if not starts:
             return None
         reach = view.distances_from(starts)
-        best, best_m = None, math.inf
-        for frontier in frontiers(view.floor, view.space, robot_radius_m=view.radius_m,
-                                  min_cells=_MIN_FRONTIER_CELLS,
-                                  min_unknown_m2=_MIN_UNKNOWN_M2):  # fmt: skip
-            if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
-                continue
-            d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
-            if d < best_m:
-                best, best_m = frontier, d
-        return best
+        found = frontiers(
+            view.floor, view.space, robot_radius_m=view.radius_m,
+            min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
+        )  # fmt: skip
+        for attempt in (0, 1):
+            best, best_m = None, math.inf
+            for frontier in found:
+                if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
+                    continue
+                d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
+                if d < best_m:
+                    best, best_m = frontier, d
+            if best is not None or attempt or not self.given_up or self.retried:
+                return best
+            self.retried, self.given_up = list(self.given_up), []
+        return None
 
-    def progress(self, frontier: Frontier | None, distance_m: float) -> None:
-        """Track the target frontier across stations; give it up when it stops shrinking."""
+    def progress(self, frontier: Frontier | None, distance_m: float, view: MapView) -> None:
+        """Track the target frontier across stations; give it up when it stops yielding: the
+        robots came no nearer (by ``_PROGRESS_M``) and the known floor around it grew by less
+        than ``_PROGRESS_M2`` (a frontier that recedes as a room is mapped is progress)."""
         if frontier is None:
             self.target = None
             return
+        known = _known_near(view, frontier.centroid_xy)
         t = self.target
         if t is None or math.dist(t.centroid, frontier.centroid_xy) > 1.5:
-            self.target = _Target(frontier.centroid_xy.copy(), distance_m)
+            self.target = _Target(frontier.centroid_xy.copy(), distance_m, known)
             return
-        if distance_m < t.best_m - 0.3:
-            t.best_m, t.stale = distance_m, 0
+        if distance_m < t.best_m - _PROGRESS_M or known >= t.known_m2 + _PROGRESS_M2:
+            t.stale = 0
         else:
             t.stale += 1
+        t.best_m, t.known_m2 = min(t.best_m, distance_m), max(t.known_m2, known)
         t.centroid = frontier.centroid_xy.copy()
         if t.stale >= _PATIENCE:
             self.given_up.append(t.centroid.copy())

@@ -138,6 +138,7 @@ class MissionLoop:
         self.pivots = 0  # pivot poses driven to, to tie the reference's turns
         self.untied: dict[str, str] = {}  # stations whose turn no mutual observation ties: why
         self.given_up: list[list[float]] = []
+        self.retried_frontiers: list[list[float]] = []
         self.changed: list[str] = []
         self.trace: list[dict[str, Any]] = []  # per station of an exploration
         self._cached: tuple[tuple[Any, ...], MapView | None] | None = None
@@ -354,7 +355,7 @@ class MissionLoop:
             if view is not None and frontier is not None:
                 reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
                 cells = frontier.cells
-                explorer.progress(frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])))
+                explorer.progress(frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])), view)
             if view is not None:
                 res = view.floor.resolution_m
                 known.append(float((~view.floor.unknown).sum()) * res * res)
@@ -368,6 +369,7 @@ class MissionLoop:
             if mapper == reference:
                 mapper = names[(names.index(reference) + 1) % len(names)]
         self.given_up = [list(map(float, g)) for g in explorer.given_up]
+        self.retried_frontiers = [list(map(float, g)) for g in explorer.retried]
         return reason
 
     def _other_pairs(self, reference: str, mapper: str) -> list[tuple[str, str]]:
@@ -509,6 +511,7 @@ class MissionLoop:
             "untied_turns": self.untied,
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "given_up_frontiers": self.given_up,
+            "retried_frontiers": self.retried_frontiers,
             "stations": self.trace,
             **{k: v for k, v in fleet_counts.items() if k != "refused_goals"},
         }  # fmt: skip

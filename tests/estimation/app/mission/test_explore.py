@@ -162,7 +162,9 @@ def frontier_at(x: float, y: float) -> Frontier:
     return Frontier(np.zeros((5, 2), dtype=np.int64), np.array([x, y]), 5)
 
 
-def test_a_frontier_that_does_not_come_closer_is_given_up(view: MapView) -> None:
+def test_a_frontier_that_does_not_come_closer_is_given_up_and_tried_once_more(
+    view: MapView,
+) -> None:
     explorer = Explorer(CONFIG, (1.5, 4.5))
     robots = [np.array([1.0, 1.0])]
     found = explorer.frontier(view, robots)
@@ -171,34 +173,68 @@ def test_a_frontier_that_does_not_come_closer_is_given_up(view: MapView) -> None
     assert found.size >= 5
     distance = float(np.min(view.distances_from(robots)[found.cells[:, 0], found.cells[:, 1]]))
     assert distance == pytest.approx(math.dist(robots[0], found.centroid_xy), rel=0.2)
-    explorer.progress(found, distance)  # a new target
-    assert explorer.target is not None
-    for station in range(explore._PATIENCE):
-        assert explorer.given_up == []
-        explorer.progress(found, distance - 0.05 * station)  # closer, but by less than 30 cm
-    assert explorer.target is None
+
+    def give_up() -> None:
+        explorer.progress(found, distance, view)  # a new target
+        assert explorer.target is not None
+        for station in range(explore._PATIENCE):
+            assert explorer.target is not None
+            # Closer, but by less than 30 cm, and the map around it the same.
+            explorer.progress(found, distance - 0.05 * station, view)
+        assert explorer.target is None
+
+    give_up()
     assert len(explorer.given_up) == 1
     np.testing.assert_allclose(explorer.given_up[0], found.centroid_xy)
-    assert explorer.frontier(view, robots) is None  # the only frontier was given up
+    # The only frontier left was given up: it is tried once more, then no more.
+    again = explorer.frontier(view, robots)
+    assert again is not None
+    np.testing.assert_allclose(again.centroid_xy, found.centroid_xy)
+    assert explorer.given_up == []
+    assert len(explorer.retried) == 1
+    give_up()
+    assert explorer.frontier(view, robots) is None
+    assert len(explorer.given_up) == 1
 
 
-def test_a_frontier_that_comes_closer_is_kept() -> None:
+def frontier_at(x: float, y: float) -> Frontier:
+    return Frontier(np.zeros((5, 2), dtype=np.int64), np.array([x, y]), 5)
+
+
+def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
     explorer = Explorer(CONFIG, (1.5, 4.5))
-    explorer.progress(frontier_at(6.5, 2.0), 6.0)
+    explorer.progress(frontier_at(6.5, 2.0), 6.0, view)
     for station in range(4 * explore._PATIENCE):
-        explorer.progress(frontier_at(6.5, 2.0 + 0.1 * station), 5.5 - 0.5 * station)
+        explorer.progress(frontier_at(6.5, 2.0 + 0.1 * station), 5.5 - 0.5 * station, view)
     assert explorer.given_up == []
     assert explorer.target is not None
     assert explorer.target.best_m == pytest.approx(5.5 - 0.5 * (4 * explore._PATIENCE - 1))
     # Stalling counts from the last gain; a frontier that jumped (> 1.5 m) is a new target.
-    explorer.progress(frontier_at(6.5, 2.8), 10.0)
+    explorer.progress(frontier_at(6.5, 2.8), 10.0, view)
     assert explorer.target.stale == 1
-    explorer.progress(frontier_at(3.0, 2.8), 10.0)
+    explorer.progress(frontier_at(3.0, 2.8), 10.0, view)
     assert explorer.target.stale == 0
     assert explorer.target.best_m == 10.0
-    explorer.progress(None, 0.0)
+    # No nearer, but the known floor around it grows by 0.5 m² or more per station: kept;
+    # by less: given up.
+    known = iter([20.0, 20.6, 21.2, 21.8, 22.4, 22.6, 22.8, 23.0])
+    monkeypatch.setattr(explore, "_known_near", lambda view, xy: next(known))
+    explorer.progress(frontier_at(1.0, 1.0), 4.0, view)
+    for _ in range(4):
+        explorer.progress(frontier_at(1.0, 1.0), 4.0, view)
+        assert explorer.target is not None
+        assert explorer.target.stale == 0
+    for stale in range(1, explore._PATIENCE):
+        explorer.progress(frontier_at(1.0, 1.0), 4.0, view)
+        assert explorer.target is not None
+        assert explorer.target.stale == stale
+    explorer.progress(frontier_at(1.0, 1.0), 4.0, view)
     assert explorer.target is None
-    assert explorer.given_up == []
+    assert len(explorer.given_up) == 1
+    explorer.progress(None, 0.0, view)
+    assert explorer.target is None
 
 
 def test_a_turn_is_tied_at_once_or_through_pivots_seen_before_and_after_each_part(
