@@ -197,10 +197,6 @@ def test_a_frontier_that_does_not_come_closer_is_given_up_and_tried_once_more(
     assert len(explorer.given_up) == 1
 
 
-def frontier_at(x: float, y: float) -> Frontier:
-    return Frontier(np.zeros((5, 2), dtype=np.int64), np.array([x, y]), 5)
-
-
 def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
