@@ -457,9 +457,11 @@ class MissionLoop:
             return self._cached[1]
         stood = [self.estimate[pose_key(r, i)][:2] for r in self.robots
                  for i in range(self.index[r] + 1) if pose_key(r, i) in self.estimate]  # fmt: skip
-        stood += [self.pose(r)[:2] for r in self.robots]
+        now = [self.pose(r)[:2] for r in self.robots]
         try:
-            view: MapView | None = MapView(self.map.grid, self.config, np.array(stood))
+            view: MapView | None = MapView(
+                self.map.grid, self.config, np.array(stood + now), robots_xy=np.array(now)
+            )
         except MapError:
             view = None
         self._cached = (state, view)

@@ -302,3 +302,28 @@ def test_a_turn_no_pivot_can_tie_is_taken_untied(view: MapView) -> None:
     assert untied.parts == ((untied.heading, None),)
     assert untied.pivots == 0
     assert untieable.heading(view, reference, mapper, [reference], None, look_first=True) is None
+
+
+def test_lines_of_sight_ignore_the_robots_where_they_stand_now_not_where_they_stood() -> None:
+    # A room seen free, with one column occupied from the floor to 2 m at (3.0, 2.0): the mast
+    # and beacon a robot left in the map where it once stood, or a coat stand.
+    i, j, k = np.meshgrid(np.arange(60), np.arange(40), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    x, y, z = ((cells + 0.5) * RES).T
+    column = (np.hypot(x - 3.0, y - 2.0) < 0.12) & (z < 2.0)
+    params = GridParams(resolution_m=RES)
+    grid = OccupancyGrid.from_cells(
+        params, cells, np.where(column, params.logodds_max, params.logodds_min)
+    )
+    observer = np.array([1.0, 2.0, 0.0])
+    target = np.array([5.2, 2.0, math.pi])
+    # The robots stand at ``observer`` and ``target`` now; a robot once stood at (3.0, 2.0).
+    now = np.array([observer[:2], target[:2]])
+    view = MapView(grid, CONFIG, np.array([*now, [3.0, 2.0]]), robots_xy=now)
+    assert not view.geometry.sees_beacon(observer, target)
+    assert not view.geometry.sees_beacon(target, observer)
+    # Were the column around a robot standing there now, it would be that robot: ignored.
+    there = MapView(grid, CONFIG, np.array([*now, [3.0, 2.0]]),
+                    robots_xy=np.array([*now, [3.0, 2.0]]))  # fmt: skip
+    assert there.geometry.sees_beacon(observer, target)
+    assert there.geometry.sees_beacon(target, observer)
