@@ -38,7 +38,7 @@ from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize, Move, Observe, Start
 from estimation.posegraph.keys import check_robot, key_label, pose_key, split_key
-from estimation.posegraph.mutual import check_observation, gap_scale, localize_mutual
+from estimation.posegraph.mutual import GAP_OUTLIER, check_observation, gap_scale, localize_mutual
 from estimation.posegraph.seed import seed_pose
 from estimation.posepdf import PosePdf
 from sensors.geometry import se2
@@ -268,7 +268,9 @@ class GraphBuilder:
         """The factor on the standard deviations of the next mutual observation's factor
         (:func:`~estimation.posegraph.mutual.gap_scale` of the gaps accepted so far). It
         depends only on the events before, in order: the mission loop and ``batch`` on its
-        recording weigh every observation alike; the gates keep the configured noise."""
+        recording weigh every observation alike. An observation whose gap exceeds
+        ``GAP_OUTLIER`` times it is rejected (a false detection that the configured s1/s2 gate
+        let through would otherwise enter with the clean observations' small covariance)."""
         return gap_scale(self._gaps, self.settings.mutual_scale_min)
 
     def initial_values(self) -> dict[int, np.ndarray]:
@@ -403,6 +405,11 @@ class GraphBuilder:
                 (ka, kc),
                 T,
             )
+        scale = self.mutual_scale()
+        if fix.gap_sigmas > GAP_OUTLIER * scale:
+            why = (f"s1/s2 gate: |s1 - s2| = {abs(fix.gap_m):.3f} m is {fix.gap_sigmas / scale:.1f}"
+                   f" times the gaps' spread (limit {GAP_OUTLIER:g})")  # fmt: skip
+            return self._reject(number, why, (ka, kc), T)
         predicted = self._predict(ra, ia, rc, ic)
         if predicted is not None:
             T_pred, cov_pred = predicted
@@ -427,7 +434,6 @@ class GraphBuilder:
             T_inv, cov_inv = _inverse_with_covariance(T, cov)
             self._refine_guess(ka, se2.compose(self.guesses[kc], T_inv), cov_inv, "observe")
         self._remember_fix(ra, ia, rc, ic, T, cov)
-        scale = self.mutual_scale()
         self._gaps.append(fix.gap_sigmas)
         factor = FactorSpec("mutual", (ka, kc), T, cov * scale**2, number)
         return Increment(number, (factor,), values)

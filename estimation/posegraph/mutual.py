@@ -35,6 +35,7 @@ from sensors.geometry.se2 import wrap_angle
 __all__ = [
     "DEFAULT_MIN_RANGE_M",
     "DEFAULT_MIN_SEPARATION_M",
+    "GAP_OUTLIER",
     "GAP_SAMPLES",
     "MAX_GAP_SCALE",
     "MutualFix",
@@ -404,9 +405,11 @@ def localize_mutual(
     )
 
 
-#: Gaps needed before the mutual observations' noise follows them, and the largest factor.
+#: Gaps needed before the mutual observations' noise follows them, the largest factor, and
+#: the gap (in units of that factor) beyond which an observation is rejected.
 GAP_SAMPLES = 10
 MAX_GAP_SCALE = 3.0
+GAP_OUTLIER = 5.0
 
 
 def gap_scale(gaps: Sequence[float], low: float | None) -> float:

@@ -448,3 +448,37 @@ def test_mutual_scale_min_is_validated() -> None:
         GraphSettings(mutual_scale_min=1.5)
     with pytest.raises(EstimationError, match=r"GraphSettings\.mutual_scale_min must be positive"):
         GraphSettings(mutual_scale_min=0.0)
+
+
+def test_an_observation_far_outside_the_gaps_spread_is_rejected() -> None:
+    # Clean observations (a tenth of the configured noise), then one whose s1 - s2 gap passes
+    # the configured 3σ gate but lies far beyond the spread of the gaps so far: a false
+    # detection that would enter with the clean ones' small covariance. It is rejected; with
+    # the scaling off, or before ten gaps are in, it passes.
+    rng = np.random.default_rng(9)
+    sigmas = np.array([S.range_sigma_m, S.bearing_sigma_rad] * 2)
+
+    def observations(builder: GraphBuilder, count: int) -> None:
+        for i in range(count):
+            T_b = np.array([2.0 + 0.02 * i, 1.5 - 0.03 * i, math.pi - 0.4 + 0.01 * i])
+            z = mutual_measurements(np.zeros(3), T_b, S) + 0.1 * sigmas * rng.standard_normal(4)
+            builder.add(Observe(("a", 0), ("b", i), *z))
+
+    T_b = np.array([2.5, 1.0, math.pi - 0.3])
+    z = mutual_measurements(np.zeros(3), T_b, S)
+    z[0] += 0.04  # A's range to C's beacon 4 cm long: s1 - s2 ≈ 1.4σ of the configured noise
+    fix = localize_mutual(*z, S.beacon_offset_m, S.range_sigma_m, S.bearing_sigma_rad,
+                          S.gate_sigmas, "ml")  # fmt: skip
+    assert fix.accepted
+    assert 0.7 < fix.gap_sigmas < 3.0
+    for settings, count, rejected in ((S, 30, True), (GraphSettings(mutual_scale_min=None), 30,
+                                                        False), (S, 5, False)):  # fmt: skip
+        builder = GraphBuilder(settings)
+        builder.add(Start("a", 0, (0.0, 0.0, 0.0)))
+        observations(builder, count)
+        before = len(builder.rejections)
+        increment = builder.add(Observe(("a", 0), ("b", 99), *z))
+        assert (increment.rejection is not None) == rejected
+        if rejected:
+            assert len(builder.rejections) == before + 1
+            assert re.search(r"times the gaps' spread \(limit 5\)", increment.rejection.reason)
