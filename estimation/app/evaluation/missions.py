@@ -432,7 +432,7 @@ def _fly(
     if flown.loop is not None:
         row["loop"] = {
             "stop_reason": flown.loop["stop_reason"],
-            "stations": len(flown.loop["stations"]),
+            "stations": len({s["step"] for s in flown.loop["stations"]}),
             "pivots": flown.loop["pivots"],
             "work_per_dwell_p99_s": flown.loop["work_per_dwell_s"]["p99"],
             "localizations_late": sum(
