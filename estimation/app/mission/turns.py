@@ -22,7 +22,7 @@ RETRIES = 2
 Spec = list[float] | None
 
 
-class MissionLoop(Protocol):
+class TurningLoop(Protocol):
     """What a turn needs of the mission loop (:class:`~estimation.app.mission.loop.MissionLoop`)."""
 
     fleet: Fleet
@@ -39,7 +39,7 @@ class MissionLoop(Protocol):
     def view(self) -> MapView | None: ...
 
 
-def fly_turn(loop: MissionLoop, explorer: Explorer, reference: str, mapper: str,
+def fly_turn(loop: TurningLoop, explorer: Explorer, reference: str, mapper: str,
              plan: TurnPlan, at: Spec) -> Spec:  # fmt: skip
     """Fly a :class:`TurnPlan`. Before each part the mapper drives to its pivot and both
     robots dwell (the mutual observation ties the pivot to the reference before the part);
@@ -75,7 +75,7 @@ def fly_turn(loop: MissionLoop, explorer: Explorer, reference: str, mapper: str,
     return at
 
 
-def _fly_pivot(loop: MissionLoop, explorer: Explorer, reference: str, mapper: str,
+def _fly_pivot(loop: TurningLoop, explorer: Explorer, reference: str, mapper: str,
                goal: ScanGoal | None, heading: float, at: Spec) -> tuple[bool, Spec]:  # fmt: skip
     """Drive the mapper to a pivot for the reference's turn to ``heading`` and dwell; on a
     refused goal or a missed observation, the next pivot. Each pivot taken closes a step of
