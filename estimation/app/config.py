@@ -254,6 +254,31 @@ class BandsConfig(_Section):
 SearchScore = Literal["agreement", "centred", "excess"]
 
 
+class RegistrationConfig(_Section):
+    """Station links and loop closures refined on the stations' 3D points: planar
+    point-to-plane ICP seeded by the search (docs/design.md §7)."""
+
+    enabled: bool = Field(
+        False, description="false: the search's pose is the measurement (docs/design.md §7: "
+        "measured, not yet the default)",
+    )  # fmt: skip
+    voxel_m: float = Field(0.05, gt=0, le=1, description="points averaged per voxel")
+    max_distance_m: float = Field(
+        0.3, gt=0, le=5, description="farthest correspondence while iterating"
+    )
+    inlier_m: float = Field(
+        0.1, gt=0, le=5, description="a point with a match this close is an inlier"
+    )
+    min_inliers: float = Field(
+        0.5, ge=0, le=1, description="share of the overlapping points that must be inliers"
+    )
+    inflation: float = Field(
+        100.0, ge=1, description="covariance factor for the correlation of neighbouring points"
+    )
+    min_sigma_m: float = Field(0.01, gt=0, description="floor on the factor's sigma")
+    min_sigma_deg: float = Field(0.2, gt=0)
+
+
 class SearchConfig(_Section):
     """The exhaustive (x, y, θ) correlation search (docs/design.md §7)."""
 
@@ -281,6 +306,7 @@ class SearchConfig(_Section):
         description="beta of the searches between station maps inside a mission (links, loop "
         "closures), calibrated on simulated missions",
     )  # fmt: skip
+    registration: RegistrationConfig = RegistrationConfig()
     station_map_reuse_m: float = Field(
         0.002, ge=0,
         description="a station map is kept across the search stages until a view moved "

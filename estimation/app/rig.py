@@ -17,6 +17,7 @@ import numpy as np
 from estimation.app.config import Config, SearchConfig
 from estimation.posegraph.graph import GraphSettings
 from estimation.search.exhaustive import SearchParams
+from estimation.search.registration import RegistrationParams
 from estimation.search.stations import StationParams
 from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
 from mapping.grid import GridParams, OccupancyGrid
@@ -153,7 +154,20 @@ def station_params(config: Config) -> StationParams:
         max_window_m=config.search.max_window_m,
         ceiling_rule=ceiling_rule(config),
         reuse_tolerance_m=config.search.station_map_reuse_m,
+        registration=registration_params(config),
     )
+
+
+def registration_params(config: Config) -> RegistrationParams | None:
+    """How links and loop closures are refined on the points (None when turned off)."""
+    r = config.search.registration
+    if not r.enabled:
+        return None
+    return RegistrationParams(
+        voxel_m=r.voxel_m, max_distance_m=r.max_distance_m, inlier_m=r.inlier_m,
+        min_inliers=r.min_inliers, inflation=r.inflation, min_sigma_m=r.min_sigma_m,
+        min_sigma_rad=math.radians(r.min_sigma_deg),
+    )  # fmt: skip
 
 
 def ceiling_rule(config: Config) -> CeilingRule | None:

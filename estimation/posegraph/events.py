@@ -10,9 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
+from estimation.errors import EstimationError
 from estimation.posepdf import PosePdf
 
-__all__ = ["Event", "Localize", "Move", "Observe", "PoseRef", "Start"]
+__all__ = ["Event", "Localize", "Move", "Observe", "PoseRef", "Start", "checked_covariance"]
 
 PoseRef = tuple[str, int]
 """(robot letter, pose index)."""
@@ -62,7 +65,9 @@ class Localize:
     covariance is fitted to; None: the configured ``search.peak_radius_*``. ``pose`` is the
     search's refined best pose (``SearchResult.pose``: the score maximised on the interpolated
     map), the factor's measurement; None: the PDF's own best pose (``PosePdf.best_pose``, a
-    quadratic through the lattice peak)."""
+    quadratic through the lattice peak). ``covariance`` (3, 3), of (x, y, yaw) in the reference
+    frame, replaces the one fitted to the PDF when the measurement came from elsewhere (a
+    registration of the stations' points, ``estimation.search.registration``)."""
 
     robot: str
     index: int
@@ -70,6 +75,28 @@ class Localize:
     reference: PoseRef | None = None
     peak_radius: tuple[float, float] | None = None
     pose: tuple[float, float, float] | None = None
+    covariance: tuple[tuple[float, ...], ...] | None = None
 
 
 Event = Start | Move | Observe | Localize
+
+
+def checked_covariance(covariance: object, what: str) -> np.ndarray:
+    """``covariance`` as a (3, 3) float array, or ``EstimationError`` naming ``what`` unless it
+    is finite, symmetric and positive definite."""
+    try:
+        matrix = np.asarray(covariance, dtype=float)
+    except (TypeError, ValueError):
+        message = f"{what} must be a 3x3 matrix of numbers, got {covariance!r}"
+        raise EstimationError(message) from None
+    ok = matrix.shape == (3, 3) and bool(np.isfinite(matrix).all())
+    ok = ok and bool(np.allclose(matrix, matrix.T, rtol=1e-9, atol=1e-15))
+    if ok:
+        try:
+            np.linalg.cholesky(matrix)
+        except np.linalg.LinAlgError:
+            ok = False
+    if not ok:
+        raise EstimationError(f"{what} must be a finite symmetric positive definite 3x3 matrix, "
+                              f"got {np.array2string(matrix, precision=4)}")  # fmt: skip
+    return matrix

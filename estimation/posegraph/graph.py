@@ -36,7 +36,7 @@ import numpy as np
 
 from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
-from estimation.posegraph.events import Event, Localize, Move, Observe, Start
+from estimation.posegraph.events import Event, Localize, Move, Observe, Start, checked_covariance
 from estimation.posegraph.keys import check_robot, key_label, pose_key, split_key
 from estimation.posegraph.mutual import GAP_OUTLIER, check_observation, gap_scale, localize_mutual
 from estimation.posegraph.seed import seed_pose
@@ -455,10 +455,11 @@ class GraphBuilder:
         if mean.shape != (3,) or not np.isfinite(mean).all():
             raise EstimationError(f"event {number}: Localize.pose must be 3 finite numbers")
         radius_m, radius_rad = event.peak_radius or (s.peak_radius_m, s.peak_radius_rad)
-        cov_frame = floor_covariance(
-            pdf.covariance(radius_m, radius_rad),
-            s.global_min_sigma_m,
-            s.global_min_sigma_rad,
+        fitted = pdf.covariance(radius_m, radius_rad) if event.covariance is None else None
+        cov_frame = (
+            floor_covariance(fitted, s.global_min_sigma_m, s.global_min_sigma_rad)
+            if fitted is not None
+            else checked_covariance(event.covariance, f"event {number}: Localize.covariance")
         )
         cov = frame_to_body_covariance(float(mean[2]), cov_frame)
         base = np.zeros(3) if reference is None else self.guesses[reference]

@@ -34,6 +34,7 @@ import numpy as np
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.search.exhaustive import SearchParams
+from estimation.search.registration import Cloud, RegistrationParams
 from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
 from mapping.errors import MapError
 from mapping.fusion import Scan as MapScan
@@ -50,6 +51,7 @@ __all__ = [
     "StationWork",
     "View",
     "band_of_grid",
+    "cloud_of_views",
     "fuse_band",
     "fuse_views",
     "mutual_ties",
@@ -109,7 +111,9 @@ class StationParams:
     few views with millimetre relative poses, agree with each other more closely than a single
     view agrees with a whole map, so their PDF is sharper (the calibration is in the README).
     ``reuse_tolerance_m``: a station map is fused again when a view moved relative to its
-    station by more than this at any of its points (0: only when the poses are bit-identical)."""
+    station by more than this at any of its points (0: only when the poses are bit-identical).
+    ``registration``: how links and loop closures are refined on the stations' 3D points
+    (None: the search's pose is the measurement)."""
 
     search: SearchParams  # relocalization against the whole map
     station_search: SearchParams  # links and loop closures
@@ -122,6 +126,7 @@ class StationParams:
     max_window_m: float
     ceiling_rule: CeilingRule | None = None  # a band that follows the ceiling, else ceiling_m
     reuse_tolerance_m: float = 0.0
+    registration: RegistrationParams | None = None  # refine the searches' poses on the points
 
 
 @dataclass
@@ -162,6 +167,32 @@ def tied_views(station: Station, ties: dict[int, set[int]]) -> list[View]:
     return [v for v in station.views if v.key in tied]
 
 
+def _T_frame_scanner(
+    views: Sequence[View], frame: np.ndarray, estimate: dict[int, np.ndarray],
+    params: StationParams,
+) -> np.ndarray:  # fmt: skip
+    """(k, 4, 4): each view's scanner frame in the robot frame ``frame`` (a map pose)."""
+    T_frame_map = np.linalg.inv(pose2_matrix(*frame))
+    return np.stack(
+        [T_frame_map @ (pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner) for v in views]
+    ).reshape(-1, 4, 4)
+
+
+def cloud_of_views(
+    views: Sequence[View],
+    frame: np.ndarray,
+    estimate: dict[int, np.ndarray],
+    params: StationParams,
+    registration: RegistrationParams,
+) -> Cloud:
+    """The views' points in the robot frame ``frame``, as a registration :class:`Cloud`."""
+    transforms = _T_frame_scanner(views, frame, estimate, params)
+    points = [
+        v.points_scanner @ T[:3, :3].T + T[:3, 3] for v, T in zip(views, transforms, strict=True)
+    ]
+    return Cloud.of(np.vstack(points) if points else np.zeros((0, 3)), registration)
+
+
 def fuse_views(
     views: Sequence[View],
     frame: np.ndarray,
@@ -171,10 +202,7 @@ def fuse_views(
 ) -> OccupancyGrid:
     """The views fused, in order, into ``grid`` (a new one if None) in the robot frame ``frame``
     (a pose in the map frame); every view must have a pose in ``estimate``."""
-    T_frame_map = np.linalg.inv(pose2_matrix(*frame))
-    transforms = np.stack(
-        [T_frame_map @ (pose2_matrix(*estimate[v.key]) @ params.T_robot_scanner) for v in views]
-    ).reshape(-1, 4, 4)
+    transforms = _T_frame_scanner(views, frame, estimate, params)
     return fuse_scans([MapScan(v.points_scanner) for v in views], transforms, params.grid, grid)
 
 
@@ -234,6 +262,7 @@ class _OwnMap:
     views: tuple[int, ...]
     relative: np.ndarray  # (k, 3) the views' poses in the station's frame when fused
     band: Band | None
+    cloud: Cloud | None = None  # made when a registration first asks for it
 
 
 @dataclass
@@ -271,10 +300,10 @@ class StationMaps:
             return bool(np.array_equal(before, after))
         return _moved_m(before, after, self._reaches(views)) <= self.params.reuse_tolerance_m
 
-    def band(
+    def _own_map(
         self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
-    ) -> Band | None:
-        """The station's ceiling band in its own frame: kept while its views stay put."""
+    ) -> tuple[_OwnMap, list[View]] | None:
+        """The station's own map (its band fused again if a view moved), and its views."""
         views = [v for v in tied_views(station, ties) if v.key in estimate]
         if not views:
             return None
@@ -282,16 +311,56 @@ class StationMaps:
         keys = tuple(v.key for v in views)
         kept = self._own.get(station.key)
         if kept is not None and kept.views == keys and self._still(kept.relative, relative, views):
-            return kept.band
+            return kept, views
         started = time.perf_counter()
         grid = fuse_views(views, estimate[station.key], estimate, self.params)
-        band = band_of_grid(grid, self.params, "ceiling")
-        self._own[station.key] = _OwnMap(keys, relative, band)
+        kept = _OwnMap(keys, relative, band_of_grid(grid, self.params, "ceiling"))
+        self._own[station.key] = kept
         work = self._work(station.key)
         work.own_rays += sum(len(v.points_scanner) for v in views)
         work.own_seconds += time.perf_counter() - started
         work.own_builds += 1
-        return band
+        return kept, views
+
+    def band(
+        self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
+    ) -> Band | None:
+        """The station's ceiling band in its own frame: kept while its views stay put."""
+        own = self._own_map(station, estimate, ties)
+        return None if own is None else own[0].band
+
+    def cloud(
+        self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
+    ) -> Cloud | None:
+        """The station's points (of the views its band is fused from) in its own frame, for
+        registration; kept with its band. None without ``params.registration``."""
+        registration = self.params.registration
+        own = self._own_map(station, estimate, ties)
+        if registration is None or own is None:
+            return None
+        kept, views = own
+        if kept.cloud is None:
+            started = time.perf_counter()
+            kept.cloud = cloud_of_views(views, estimate[station.key], estimate, self.params,
+                                        registration)  # fmt: skip
+            self._work(station.key).own_seconds += time.perf_counter() - started
+        return kept.cloud
+
+    def older_cloud(
+        self,
+        anchor: Station,
+        older: Sequence[Station],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+    ) -> Cloud | None:
+        """The ``older`` stations' clouds in ``anchor``'s frame, joined."""
+        frame = estimate[anchor.key]
+        clouds = [
+            cloud.moved(se2.between(frame, estimate[s.key]))
+            for s in older
+            if (cloud := self.cloud(s, estimate, ties)) is not None
+        ]
+        return Cloud.joined(clouds) if clouds else None
 
     def older_band(
         self,

@@ -49,6 +49,7 @@ from estimation.search.exhaustive import (
     windowed_search,
 )
 from estimation.search.lattice import pose_lattice
+from estimation.search.registration import Cloud, Registration, register
 from estimation.search.station_maps import (
     Dwell,
     Station,
@@ -140,6 +141,8 @@ class SearchRecord:
     seconds: float
     time_s: float  # when the station's sweeps were taken
     overlap: float = math.nan  # share of the local map's known cells on known map cells
+    searched: tuple[float, float, float] | None = None  # the search's pose when refined
+    inliers: float = math.nan  # the registration's share of corresponding points
     picture: SearchPicture | None = field(default=None, compare=False, repr=False)
 
 
@@ -172,6 +175,69 @@ def _search_near(
 def _pose_of(result: SearchResult) -> tuple[float, float, float]:
     x, y, yaw = (float(v) for v in result.pose)
     return x, y, yaw
+
+
+@dataclass(frozen=True)
+class _Refined:
+    """A search's answer as a factor would take it: the pose, the covariance to use (None: fit
+    it to the PDF), and the registration (None when none ran) with whether it was accepted."""
+
+    pose: np.ndarray
+    covariance: np.ndarray | None
+    registration: Registration | None
+    sound: bool
+
+    def record_fields(self, result: SearchResult) -> dict[str, Any]:
+        if self.registration is None:
+            return {"pose": _pose_of(result)}
+        x, y, yaw = (float(v) for v in self.pose)
+        return {"pose": (x, y, yaw), "searched": _pose_of(result),
+                "inliers": self.registration.inliers}  # fmt: skip
+
+    def event(self, station: Station, anchor: Station, peak: tuple[float, float] | None,
+              result: SearchResult) -> Localize:  # fmt: skip
+        x, y, yaw = (float(v) for v in self.pose)
+        covariance = (
+            None if self.covariance is None else tuple(tuple(float(v) for v in row)
+                                                       for row in self.covariance)
+        )  # fmt: skip
+        anchored = (anchor.robot, anchor.index)
+        return Localize(
+            station.robot, station.index, result.pdf, anchored, peak, (x, y, yaw), covariance
+        )
+
+
+def _refined(
+    result: SearchResult,
+    source: Cloud | None,
+    target: Cloud | None,
+    params: StationParams,
+    seed: np.ndarray | None = None,
+) -> _Refined:
+    """The search's pose (or ``seed``) refined on the stations' points
+    (``params.registration``): the registration's pose and covariance when it converged with
+    enough corresponding points, else unsound. Without registration, the search's pose as it
+    is; without clouds, unsound."""
+    settings = params.registration
+    searched = np.asarray(result.pose, dtype=float)
+    if settings is None:
+        return _Refined(searched, None, None, True)
+    if source is None or target is None:
+        return _Refined(searched, None, None, False)
+    seed = searched if seed is None else np.asarray(seed, dtype=float)
+    target = target.within(seed[:2], source.reach_m() + settings.max_distance_m)
+    found = register(source, target, seed, settings)
+    if found is None:
+        return _Refined(seed, None, None, False)
+    return _Refined(found.pose, found.covariance, found, found.accepted(settings))
+
+
+def _near(pose: np.ndarray, predicted: np.ndarray) -> bool:
+    """A link's pose agrees with the prediction across the turn between the stations."""
+    return (
+        math.dist(pose[:2], predicted[:2]) < _LINK_CONSISTENT_M
+        and abs(math.remainder(float(pose[2] - predicted[2]), 2 * math.pi)) < _LINK_CONSISTENT_RAD
+    )
 
 
 def station_links(
@@ -223,27 +289,31 @@ def station_links(
         except EstimationError:
             continue
         overlap = overlap_fraction(local, global_, result.pose)
-        consistent = (
-            math.dist(result.pose[:2], predicted[:2]) < _LINK_CONSISTENT_M
-            and abs(math.remainder(result.pose[2] - predicted[2], 2 * math.pi))
-            < _LINK_CONSISTENT_RAD
+        consistent = _near(result.pose, predicted) and overlap >= _MIN_OVERLAP
+        refined = None
+        if consistent or params.registration is not None:
+            # A search whose peak strays from the prediction (a band that matches poorly, the
+            # peak on the window's edge) leaves the registration to start from the prediction.
+            source = maps.cloud(station, estimate, ties)
+            refined = _refined(result, source, maps.cloud(previous, estimate, ties), params,
+                               None if consistent else predicted)  # fmt: skip
+            overlap = overlap_fraction(local, global_, refined.pose)
+        used = (
+            refined is not None
+            and refined.sound
+            and _near(refined.pose, predicted)
             and overlap >= _MIN_OVERLAP
         )
-        if consistent:
-            reference = (previous.robot, previous.index)
-            events.append(
-                Localize(
-                    station.robot, station.index, result.pdf, reference, _LINK_RADIUS,
-                    _pose_of(result),
-                )
-            )  # fmt: skip
+        if used and refined is not None:
+            events.append(refined.event(station, previous, _LINK_RADIUS, result))
         maps.searched(station, time.perf_counter() - started)
         records.append(
             SearchRecord(
                 station=station.label, against=previous.label, band="ceiling", kind="link",
-                pose=_pose_of(result), peak_ratio=float(result.peak_ratio),
-                dominant=result.is_dominant(search.dominance_ratio), used=consistent,
+                peak_ratio=float(result.peak_ratio),
+                dominant=result.is_dominant(search.dominance_ratio), used=used,
                 seconds=time.perf_counter() - started, time_s=station.time_s, overlap=overlap,
+                **(refined or _Refined(result.pose, None, None, False)).record_fields(result),
             )
         )  # fmt: skip
     return events, records
@@ -297,24 +367,26 @@ def loop_closures(
         except EstimationError:
             continue
         dominant = result.is_dominant(search.dominance_ratio) and not on_edge
-        offset = se2.log(se2.between(predicted, result.pose))
-        chi2_value = float(offset @ np.linalg.solve(uncertainty + result.covariance, offset))
         overlap = overlap_fraction(local, global_, result.pose)
-        use = dominant and chi2_value < _LOOP_GATE and overlap >= _MIN_OVERLAP
+        refined = _Refined(np.asarray(result.pose, dtype=float), None, None, False)
+        use = False
+        if dominant and overlap >= _MIN_OVERLAP:
+            refined = _refined(result, maps.cloud(station, estimate, ties),
+                               maps.older_cloud(anchor, older, estimate, ties), params)  # fmt: skip
+            measured = result.covariance if refined.covariance is None else refined.covariance
+            offset = se2.log(se2.between(predicted, refined.pose))
+            chi2_value = float(offset @ np.linalg.solve(uncertainty + measured, offset))
+            use = refined.sound and chi2_value < _LOOP_GATE
         if use:
-            events.append(
-                Localize(
-                    station.robot, station.index, result.pdf, (anchor.robot, anchor.index),
-                    pose=_pose_of(result),
-                )
-            )  # fmt: skip
+            events.append(refined.event(station, anchor, None, result))
         maps.searched(station, time.perf_counter() - started)
         records.append(
             SearchRecord(
                 station=station.label, against=anchor.label, band="ceiling", kind="loop",
-                pose=_pose_of(result), peak_ratio=float(result.peak_ratio), dominant=dominant,
+                peak_ratio=float(result.peak_ratio), dominant=dominant,
                 used=use, seconds=time.perf_counter() - started, time_s=station.time_s,
                 overlap=overlap, picture=SearchPicture.of(result, local, global_),
+                **refined.record_fields(result),
             )
         )  # fmt: skip
     return events, records
@@ -376,9 +448,11 @@ def relocalize(
 def records_json(records: list[SearchRecord]) -> list[dict[str, Any]]:
     return [
         {
-            **{k: v for k, v in r.__dict__.items() if k != "picture"},
+            **{k: v for k, v in r.__dict__.items() if k not in ("picture", "searched", "inliers")},
             "pose": [round(v, 6) for v in r.pose],
             "overlap": round(r.overlap, 4),
+            **({} if r.searched is None else {"searched": [round(v, 6) for v in r.searched]}),
+            **({} if math.isnan(r.inliers) else {"inliers": round(r.inliers, 4)}),
         }
         for r in records
     ]

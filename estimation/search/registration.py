@@ -1,0 +1,289 @@
+"""Planar point-to-plane registration of two station clouds, seeded by a search (docs/design.md
+§7).
+
+The correlation search finds the right mode of the (x, y, θ) PDF, but on 0.1 m, 1° lattices and
+2D bands cut from occupancy grids its best pose is off by a few centimetres typically and by
+decimetres where the ceiling band holds little (a bare ceiling, a band cut at different heights
+in the two maps). The stations' 3D points hold far more: every wall, pillar and piece of
+furniture both saw. :func:`register` refines the search's pose on them — iterative closest
+points, the residual of each source point its distance to the tangent plane of its nearest
+target point (Chen and Medioni's point-to-plane error), minimised over (x, y, θ) only (the
+robots drive on a floor; z, roll and pitch are fixed by the mount).
+
+Clouds (:class:`Cloud`) are voxel-averaged points with normals from the principal axes of their
+neighbourhoods. Every point is kept as a source point: the sparse ones (far walls, seen at a
+grazing angle or from afar, where no normal fits) are what pins a long room along its axis —
+dropping them let the registration slide by decimetres along corridors. Floor and ceiling points
+add nothing to a planar pose (their normals are vertical) and cost little.
+
+The answer's covariance is the Gauss-Newton one (σ² (JᵀWJ)⁻¹, σ² from the weighted residuals)
+times ``inflation`` — neighbouring points are not independent, so the plain estimate is far too
+confident — and floored. In a corridor the Hessian is nearly singular along its axis, and the
+covariance says so.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from estimation.errors import EstimationError
+
+__all__ = ["Cloud", "Registration", "RegistrationParams", "register"]
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """How clouds are made and registered. Distances in metres, angles in radians."""
+
+    voxel_m: float = 0.05  # points averaged per voxel of this side
+    max_distance_m: float = 0.3  # farthest correspondence (the search's pose is this good)
+    inlier_m: float = 0.1  # a source point is an inlier if its nearest target lies this close
+    min_inliers: float = 0.5  # share of the overlapping source points that must be inliers
+    huber_m: float = 0.05  # residuals beyond this are down-weighted
+    iterations: int = 40
+    neighbours: int = 20  # per normal
+    inflation: float = 100.0  # covariance factor for the correlation of neighbouring points
+    min_sigma_m: float = 0.005
+    min_sigma_rad: float = math.radians(0.05)
+
+
+#: A normal is fitted to the neighbours within this many voxels, if at least this many lie there.
+_NORMAL_REACH = 6.0
+_MIN_NEIGHBOURS = 5
+#: Fewer correspondences than this: no registration.
+_MIN_POINTS = 50
+#: Converged when an iteration moves the pose by less than this (m, and rad × 1 m).
+_STEP_TOLERANCE = 1e-5
+
+
+@dataclass(frozen=True, eq=False)
+class Cloud:
+    """Points (N, 3) in a robot frame with unit normals (N, 3): the registrable part of a
+    station's sweeps."""
+
+    points: np.ndarray
+    normals: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @functools.cached_property
+    def tree(self) -> cKDTree:
+        return cKDTree(self.points)
+
+    @classmethod
+    def of(cls, points: np.ndarray, params: RegistrationParams) -> Cloud:
+        """The cloud of raw points (N, 3): averaged per voxel, with normals. Non-finite points
+        are dropped."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        if len(points) < params.neighbours:
+            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
+        cells = np.floor(points / params.voxel_m).astype(np.int64)
+        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        sums = np.zeros((len(counts), 3))
+        np.add.at(sums, inverse, points)
+        centres = sums / counts[:, None]
+        if len(centres) < params.neighbours:
+            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
+        return cls(centres, _normals(centres, params))
+
+    def moved(self, pose: np.ndarray) -> Cloud:
+        """The cloud in the frame in which its own frame has the planar ``pose`` (x, y, yaw)."""
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return Cloud(self.points @ R.T + np.array([pose[0], pose[1], 0.0]), self.normals @ R.T)
+
+    def reach_m(self) -> float:
+        """How far from the frame's origin (in the plane) the points lie, at most."""
+        if not len(self):
+            return 0.0
+        return float(np.sqrt((self.points[:, :2] ** 2).sum(axis=1).max()))
+
+    def within(self, centre_xy: np.ndarray, radius_m: float) -> Cloud:
+        """The points within ``radius_m`` of ``centre_xy`` in the plane."""
+        keep = ((self.points[:, :2] - centre_xy) ** 2).sum(axis=1) <= radius_m**2
+        return Cloud(self.points[keep], self.normals[keep])
+
+    @classmethod
+    def joined(cls, clouds: list[Cloud]) -> Cloud:
+        if not clouds:
+            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
+        return cls(np.vstack([c.points for c in clouds]), np.vstack([c.normals for c in clouds]))
+
+
+def _normals(points: np.ndarray, params: RegistrationParams) -> np.ndarray:
+    """Unit normals (N, 3) from the principal axes of each point's nearest neighbours within
+    ``_NORMAL_REACH`` voxels; zero where fewer than ``_MIN_NEIGHBOURS`` lie that close (such a
+    point is still matched as a source point, but no source point is matched to it)."""
+    reach = _NORMAL_REACH * params.voxel_m
+    k = min(params.neighbours, len(points))
+    distance, index = cKDTree(points).query(points, k=k, distance_upper_bound=reach)
+    valid = np.isfinite(distance)  # (N, k)
+    count = valid.sum(axis=1)
+    normals = np.zeros_like(points)
+    enough = count >= _MIN_NEIGHBOURS
+    if not enough.any():
+        return normals
+    index, valid, count = index[enough], valid[enough], count[enough]
+    near = points[np.where(valid, index, 0)] * valid[:, :, None]  # (M, k, 3), missing ones zero
+    mean = near.sum(axis=1) / count[:, None]
+    offset = (near - mean[:, None, :]) * valid[:, :, None]
+    covariance = np.einsum("mki,mkj->mij", offset, offset)
+    _, vectors = np.linalg.eigh(covariance)  # ascending: the first axis is the normal
+    normals[enough] = vectors[:, :, 0]
+    return normals
+
+
+@dataclass(frozen=True)
+class Registration:
+    """The refined pose of the source cloud's frame in the target's, its covariance (x, y, yaw
+    in the target frame), the share of the overlapping source points (a target within
+    ``max_distance_m``) that lie within ``inlier_m`` of one — stations overlap only in part, so
+    the share of all source points would say more about the overlap than about the fit —, the
+    RMS point-to-plane residual of those inliers, and the iterations taken."""
+
+    pose: np.ndarray  # (3,)
+    covariance: np.ndarray  # (3, 3)
+    inliers: float
+    rms_m: float
+    iterations: int
+    converged: bool
+
+    def accepted(self, params: RegistrationParams) -> bool:
+        return self.converged and self.inliers >= params.min_inliers
+
+
+def _rotated(points: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) the points' xy rotated by yaw, and their derivative with respect to yaw."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    x, y = points[:, 0], points[:, 1]
+    return np.c_[c * x - s * y, s * x + c * y], np.c_[-s * x - c * y, c * x - s * y]
+
+
+def register(
+    source: Cloud,
+    target: Cloud,
+    seed: np.ndarray,
+    params: RegistrationParams,
+    prior: np.ndarray | None = None,
+) -> Registration | None:
+    """The pose (x, y, yaw) of ``source``'s frame in ``target``'s that lays the source points on
+    the target's surfaces, starting from ``seed``; None when too few points correspond.
+
+    ``prior`` (3, 3): the seed's covariance (the search's). The registration then minimises the
+    points' residuals plus the seed's Mahalanobis term, so where the points hardly constrain
+    the pose — along a corridor without features — it stays with the seed instead of sliding
+    (measured: 31 cm along office_loop's corridor without it), and the answer's covariance
+    holds both."""
+    seed = np.asarray(seed, dtype=np.float64)
+    if seed.shape != (3,) or not np.isfinite(seed).all():
+        raise EstimationError(f"registration seed must be 3 finite numbers, got {seed!r}")
+    information = np.zeros((3, 3)) if prior is None else _inverse_covariance(prior)
+    if len(source) < _MIN_POINTS or len(target) < _MIN_POINTS:
+        return None
+    tree = target.tree
+    pose = seed.copy()
+    converged = False
+    iterations = 0
+    # While iterating, residuals count with the Huber scale as their sigma (the measured one is
+    # known only once aligned; before, it would let the seed hold the pose back).
+    scale = params.huber_m**2 * params.inflation
+    while iterations < params.iterations:
+        iterations += 1
+        found = _linearised(source, target, tree, pose, params.max_distance_m, params)
+        if found is None:
+            return None
+        H, g, _, _ = found
+        offset = _offset(pose, seed)
+        try:
+            step = -np.linalg.solve(
+                H / scale + information + 1e-9 * np.eye(3), g / scale + information @ offset
+            )
+        except np.linalg.LinAlgError:
+            return None
+        pose = pose + step
+        pose[2] = math.remainder(pose[2], 2 * math.pi)
+        if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
+            converged = True
+            break
+    overlapping = _linearised(source, target, tree, pose, params.max_distance_m, params)
+    final = _linearised(source, target, tree, pose, params.inlier_m, params)
+    if overlapping is None or final is None:
+        return None
+    near = overlapping[2]
+    H, _, residuals, weights = final
+    inliers = len(residuals) / len(near)
+    dof = max(float(weights.sum()) - 3.0, 1.0)
+    sigma2 = max(float((weights * residuals**2).sum()) / dof, 1e-10)
+    try:
+        covariance = np.linalg.inv(H / (sigma2 * params.inflation) + information)
+    except np.linalg.LinAlgError:
+        return None
+    covariance = 0.5 * (covariance + covariance.T)
+    floor = np.diag([params.min_sigma_m**2, params.min_sigma_m**2, params.min_sigma_rad**2])
+    covariance = _floored(covariance, floor)
+    rms = math.sqrt(float(np.mean(residuals**2)))
+    return Registration(pose, covariance, inliers, rms, iterations, converged)
+
+
+def _offset(pose: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    offset = pose - seed
+    offset[2] = math.remainder(float(offset[2]), 2 * math.pi)
+    return offset
+
+
+def _inverse_covariance(covariance: np.ndarray) -> np.ndarray:
+    covariance = np.asarray(covariance, dtype=np.float64)
+    if covariance.shape != (3, 3) or not np.isfinite(covariance).all():
+        raise EstimationError(f"registration prior must be a finite 3x3 covariance, got "
+                              f"{covariance!r}")  # fmt: skip
+    try:
+        information = np.linalg.inv(0.5 * (covariance + covariance.T))
+        np.linalg.cholesky(information)
+    except np.linalg.LinAlgError:
+        raise EstimationError("registration prior must be positive definite") from None
+    return information
+
+
+def _linearised(
+    source: Cloud,
+    target: Cloud,
+    tree: cKDTree,
+    pose: np.ndarray,
+    reach_m: float,
+    params: RegistrationParams,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The Gauss-Newton system (H, g) of the point-to-plane residuals at ``pose`` over the source
+    points with a target within ``reach_m``, their residuals and Huber weights."""
+    xy, dxy = _rotated(source.points, float(pose[2]))
+    moved = np.c_[xy + pose[:2], source.points[:, 2]]
+    distance, index = tree.query(moved, distance_upper_bound=reach_m)
+    ok = np.isfinite(distance)
+    if ok.sum() < _MIN_POINTS:
+        return None
+    normal = target.normals[index[ok]]
+    residual = ((moved[ok] - target.points[index[ok]]) * normal).sum(axis=1)
+    J = np.c_[normal[:, 0], normal[:, 1], (normal[:, :2] * dxy[ok]).sum(axis=1)]
+    size = np.abs(residual)
+    weight = np.where(size <= params.huber_m, 1.0, params.huber_m / np.maximum(size, 1e-12))
+    H = J.T @ (J * weight[:, None])
+    g = J.T @ (weight * residual)
+    return H, g, residual, weight
+
+
+def _floored(covariance: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """The covariance with every direction at least as uncertain as ``floor`` says (eigenvalues
+    of the whitened matrix raised to 1)."""
+    L = np.linalg.cholesky(floor)
+    L_inv = np.linalg.inv(L)
+    whitened = L_inv @ covariance @ L_inv.T
+    values, vectors = np.linalg.eigh(0.5 * (whitened + whitened.T))
+    values = np.maximum(values, 1.0)
+    return L @ (vectors * values) @ vectors.T @ L.T

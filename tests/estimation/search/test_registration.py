@@ -1,0 +1,134 @@
+"""Planar point-to-plane registration of station clouds (estimation/search/registration.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from estimation.errors import EstimationError
+from estimation.posegraph.events import checked_covariance
+from estimation.search.registration import Cloud, RegistrationParams, register
+from sensors.geometry import se2
+
+PARAMS = RegistrationParams()
+
+
+def _room(rng: np.random.Generator, corridor: bool = False) -> np.ndarray:
+    """Points on the walls of a 6 m × 4 m room (or a 30 m × 2 m corridor without end walls)
+    and on a pillar, 0.2–2.5 m high."""
+    h = rng.uniform(0.2, 2.5, 4000)
+    t = rng.uniform(0, 1, 4000)
+    if corridor:
+        x0, x1, y0, y1 = -15.0, 15.0, -1.0, 1.0
+        walls = [np.c_[x0 + (x1 - x0) * t[:2000], np.full(2000, y0), h[:2000]],
+                 np.c_[x0 + (x1 - x0) * t[2000:], np.full(2000, y1), h[2000:]]]  # fmt: skip
+        return np.vstack(walls) + rng.normal(0, 0.003, (4000, 3))
+    x0, x1, y0, y1 = -3.0, 3.0, -2.0, 2.0
+    q = np.array_split(np.arange(4000), 5)
+    walls = [np.c_[x0 + 6 * t[q[0]], np.full(len(q[0]), y0), h[q[0]]],
+             np.c_[x0 + 6 * t[q[1]], np.full(len(q[1]), y1), h[q[1]]],
+             np.c_[np.full(len(q[2]), x0), y0 + 4 * t[q[2]], h[q[2]]],
+             np.c_[np.full(len(q[3]), x1), y0 + 4 * t[q[3]], h[q[3]]]]  # fmt: skip
+    a = 2 * math.pi * t[q[4]]
+    walls.append(np.c_[1.0 + 0.2 * np.cos(a), 0.5 + 0.2 * np.sin(a), h[q[4]]])
+    return np.vstack(walls) + rng.normal(0, 0.003, (4000, 3))
+
+
+def _seen_from(points_map: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """The map points in the robot frame of ``pose``."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    d = points_map[:, :2] - pose[:2]
+    return np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], points_map[:, 2]]
+
+
+def test_registration_recovers_the_relative_pose_from_a_seed_decimetres_off() -> None:
+    rng = np.random.default_rng(1)
+    a, b = np.array([0.3, -0.2, 0.1]), np.array([-0.8, 0.6, 0.9])
+    target = Cloud.of(_seen_from(_room(rng), a), PARAMS)
+    source = Cloud.of(_seen_from(_room(rng), b), PARAMS)
+    truth = se2.between(a, b)
+    found = register(source, target, truth + np.array([0.25, -0.2, math.radians(4.0)]), PARAMS)
+    assert found is not None
+    assert found.accepted(PARAMS)
+    assert math.dist(found.pose[:2], truth[:2]) < 0.005
+    assert abs(math.remainder(found.pose[2] - truth[2], 2 * math.pi)) < math.radians(0.1)
+    assert found.inliers > 0.85
+    assert found.rms_m < 0.01
+    sigmas = np.sqrt(np.diag(found.covariance))
+    assert sigmas[0] >= PARAMS.min_sigma_m * 0.999
+    assert sigmas[2] >= PARAMS.min_sigma_rad * 0.999
+    checked_covariance(found.covariance, "registration")  # symmetric positive definite
+
+
+def test_a_corridor_is_uncertain_along_its_axis_and_a_prior_holds_the_seed_there() -> None:
+    rng = np.random.default_rng(2)
+    target = Cloud.of(_room(rng, corridor=True), PARAMS)
+    source = Cloud.of(_room(rng, corridor=True), PARAMS)
+    seed = np.array([0.1, 0.03, 0.0])
+    free = register(source, target, seed, PARAMS)
+    assert free is not None
+    sx, sy = np.sqrt(np.diag(free.covariance))[:2]
+    assert sx > 5 * sy  # along the axis the points say little
+    assert abs(free.pose[1]) < 0.005  # across it they fix the pose
+    held = register(source, target, seed, PARAMS, prior=np.diag([0.02, 0.02, 0.005]) ** 2)
+    assert held is not None
+    assert abs(held.pose[0] - seed[0]) < 0.01
+    assert abs(held.pose[1]) < 0.005
+    assert np.sqrt(held.covariance[0, 0]) <= 0.0201
+
+
+def test_registration_of_clouds_that_do_not_overlap_is_none_or_refused() -> None:
+    rng = np.random.default_rng(3)
+    room = Cloud.of(_room(rng), PARAMS)
+    far = room.moved(np.array([50.0, 0.0, 0.0]))
+    assert register(far, room, np.zeros(3), PARAMS) is None
+    assert register(Cloud.of(np.zeros((3, 3)), PARAMS), room, np.zeros(3), PARAMS) is None
+
+
+def test_bad_seeds_priors_and_points_are_refused_in_one_line() -> None:
+    rng = np.random.default_rng(4)
+    room = Cloud.of(_room(rng), PARAMS)
+    with pytest.raises(EstimationError, match="seed must be 3 finite numbers"):
+        register(room, room, np.array([0.0, math.nan, 0.0]), PARAMS)
+    with pytest.raises(EstimationError, match="positive definite"):
+        register(room, room, np.zeros(3), PARAMS, prior=np.diag([1.0, 0.0, -1.0]))
+    with pytest.raises(EstimationError, match="finite 3x3"):
+        register(room, room, np.zeros(3), PARAMS, prior=np.eye(2))
+    with_nan = np.vstack([_room(rng), [[math.nan, 0.0, 1.0], [math.inf, 1.0, 1.0]]])
+    cloud = Cloud.of(with_nan, PARAMS)
+    assert np.isfinite(cloud.points).all()
+    assert np.isfinite(cloud.normals).all()
+
+
+def test_clouds_move_join_and_crop_consistently() -> None:
+    rng = np.random.default_rng(5)
+    room = Cloud.of(_room(rng), PARAMS)
+    pose = np.array([2.0, -1.0, 0.7])
+    moved = room.moved(pose)
+    assert np.allclose(np.linalg.norm(moved.normals, axis=1), np.linalg.norm(room.normals, axis=1))
+    back = _seen_from(moved.points, pose)
+    assert np.allclose(back, room.points, atol=1e-9)
+    joined = Cloud.joined([room, moved])
+    assert len(joined) == 2 * len(room)
+    assert len(Cloud.joined([])) == 0
+    near = room.within(np.zeros(2), 1.0)
+    assert len(near) < len(room)
+    assert (np.hypot(near.points[:, 0], near.points[:, 1]) <= 1.0).all()
+    assert room.reach_m() == pytest.approx(np.hypot(3.0, 2.0), abs=0.1)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.eye(2),
+        np.diag([1.0, 1.0, -1.0]),
+        [[1, 2, 3], [0, 1, 0], [0, 0, 1]],
+        "x",
+        np.full((3, 3), math.nan),
+    ],
+)
+def test_a_localize_covariance_must_be_a_covariance(bad: object) -> None:
+    with pytest.raises(EstimationError, match=r"Localize\.covariance"):
+        checked_covariance(bad, "event 3: Localize.covariance")
