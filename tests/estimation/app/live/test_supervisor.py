@@ -258,7 +258,7 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
                str(out), "--port", str(free_port())]  # fmt: skip
     first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _wait(lambda: _commands_logged(out) >= 5)
+        _wait(lambda: _commands_logged(out) >= 3)
         first.send_signal(signal.SIGINT)
         _, stderr = first.communicate(timeout=60)
     finally:
@@ -269,7 +269,7 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     assert "the same command resumes the mission" in stderr
     assert "Traceback" not in stderr
     assert not out.exists()
-    assert _commands_logged(out) >= 5  # the checkpoint stayed
+    assert _commands_logged(out) >= 3  # the checkpoint stayed
     assert (robot_dirs(out) / "a" / "commands.jsonl").exists()
     # resumed, and watched in Foxglove: the base serves its live view while it flies
     view_port = free_port()
