@@ -55,10 +55,16 @@ class RegistrationParams:
 #: A normal is fitted to the neighbours within this many voxels, if at least this many lie there.
 _NORMAL_REACH = 6.0
 _MIN_NEIGHBOURS = 5
+#: A source point's target is the nearest of this many whose normal agrees with its own to this
+#: cosine (60°): the two faces of a thin wall or beam, seen from opposite sides, never pair.
+_CANDIDATES = 8
+_COMPATIBLE = 0.5
+#: The first iterations use every this-many-th source point.
+_THIN = 3
 #: Fewer correspondences than this: no registration.
 _MIN_POINTS = 50
 #: Converged when an iteration moves the pose by less than this (m, and rad × 1 m).
-_STEP_TOLERANCE = 1e-5
+_STEP_TOLERANCE = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,6 +74,7 @@ class Cloud:
 
     points: np.ndarray
     normals: np.ndarray
+    oriented: bool = False  # normals face the side their surface was seen from
 
     def __len__(self) -> int:
         return len(self.points)
@@ -77,28 +84,54 @@ class Cloud:
         return cKDTree(self.points)
 
     @classmethod
-    def of(cls, points: np.ndarray, params: RegistrationParams) -> Cloud:
-        """The cloud of raw points (N, 3): averaged per voxel, with normals. Non-finite points
-        are dropped."""
+    def of(
+        cls, points: np.ndarray, params: RegistrationParams, viewpoints: np.ndarray | None = None
+    ) -> Cloud:
+        """The cloud of raw points (N, 3): averaged per voxel, with normals. ``viewpoints``
+        (N, 3): where each point was seen from (its scanner); the normals then face the side
+        that was seen, so that the two faces of a thin wall or beam are told apart. Non-finite
+        points are dropped."""
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        points = points[np.isfinite(points).all(axis=1)]
+        finite = np.isfinite(points).all(axis=1)
+        if viewpoints is not None:
+            viewpoints = np.asarray(viewpoints, dtype=np.float64).reshape(-1, 3)
+            if len(viewpoints) != len(points):
+                raise EstimationError(f"cloud: {len(viewpoints)} viewpoints for "
+                                      f"{len(points)} points")  # fmt: skip
+            finite &= np.isfinite(viewpoints).all(axis=1)
+            viewpoints = viewpoints[finite]
+        points = points[finite]
         if len(points) < params.neighbours:
-            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
-        cells = np.floor(points / params.voxel_m).astype(np.int64)
-        _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+            return cls.empty()
+        _, inverse, counts = np.unique(
+            _voxel_keys(points, params.voxel_m), return_inverse=True, return_counts=True
+        )
         inverse = inverse.reshape(-1)
-        sums = np.zeros((len(counts), 3))
-        np.add.at(sums, inverse, points)
-        centres = sums / counts[:, None]
+        centres = _means(points, inverse, counts)
         if len(centres) < params.neighbours:
-            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
-        return cls(centres, _normals(centres, params))
+            return cls.empty()
+        normals = _normals(centres, params)
+        if viewpoints is None:
+            return cls(centres, normals)
+        towards = _means(viewpoints, inverse, counts) - centres
+        normals *= np.where((normals * towards).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+        return cls(centres, normals, oriented=True)
+
+    @classmethod
+    def empty(cls) -> Cloud:
+        return cls(np.zeros((0, 3)), np.zeros((0, 3)))
 
     def moved(self, pose: np.ndarray) -> Cloud:
         """The cloud in the frame in which its own frame has the planar ``pose`` (x, y, yaw)."""
         c, s = math.cos(pose[2]), math.sin(pose[2])
         R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return Cloud(self.points @ R.T + np.array([pose[0], pose[1], 0.0]), self.normals @ R.T)
+        return Cloud(
+            self.points @ R.T + np.array([pose[0], pose[1], 0.0]), self.normals @ R.T, self.oriented
+        )
+
+    def thinned(self, every: int) -> Cloud:
+        """Every ``every``-th point."""
+        return Cloud(self.points[::every], self.normals[::every], self.oriented)
 
     def reach_m(self) -> float:
         """How far from the frame's origin (in the plane) the points lie, at most."""
@@ -109,13 +142,31 @@ class Cloud:
     def within(self, centre_xy: np.ndarray, radius_m: float) -> Cloud:
         """The points within ``radius_m`` of ``centre_xy`` in the plane."""
         keep = ((self.points[:, :2] - centre_xy) ** 2).sum(axis=1) <= radius_m**2
-        return Cloud(self.points[keep], self.normals[keep])
+        return Cloud(self.points[keep], self.normals[keep], self.oriented)
 
     @classmethod
     def joined(cls, clouds: list[Cloud]) -> Cloud:
         if not clouds:
-            return cls(np.zeros((0, 3)), np.zeros((0, 3)))
-        return cls(np.vstack([c.points for c in clouds]), np.vstack([c.normals for c in clouds]))
+            return cls.empty()
+        return cls(np.vstack([c.points for c in clouds]), np.vstack([c.normals for c in clouds]),
+                   all(c.oriented for c in clouds))  # fmt: skip
+
+
+def _voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One int64 per point naming its voxel (the cells' indices from their minimum, packed
+    21 bits each: unique over 2 million voxels a side)."""
+    cells = np.floor(points / voxel_m).astype(np.int64)
+    cells -= cells.min(axis=0)
+    if cells.max() >= 1 << 21:
+        raise EstimationError(f"cloud spans over {(1 << 21) * voxel_m:.0f} m")
+    return (cells[:, 0] << 42) | (cells[:, 1] << 21) | cells[:, 2]
+
+
+def _means(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(M, 3) the mean of ``values`` (N, 3) per group (``inverse``: each row's group)."""
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, inverse, values)
+    return sums / counts[:, None]
 
 
 def _normals(points: np.ndarray, params: RegistrationParams) -> np.ndarray:
@@ -195,24 +246,28 @@ def register(
     # While iterating, residuals count with the Huber scale as their sigma (the measured one is
     # known only once aligned; before, it would let the seed hold the pose back).
     scale = params.huber_m**2 * params.inflation
-    while iterations < params.iterations:
-        iterations += 1
-        found = _linearised(source, target, tree, pose, params.max_distance_m, params)
-        if found is None:
-            return None
-        H, g, _, _ = found
-        offset = _offset(pose, seed)
-        try:
-            step = -np.linalg.solve(
-                H / scale + information + 1e-9 * np.eye(3), g / scale + information @ offset
-            )
-        except np.linalg.LinAlgError:
-            return None
-        pose = pose + step
-        pose[2] = math.remainder(pose[2], 2 * math.pi)
-        if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
-            converged = True
-            break
+    # A third of the source points brings the pose to its basin; all of them finish it.
+    stages = [source.thinned(_THIN), source] if len(source) >= _THIN * _MIN_POINTS else [source]
+    for points in stages:
+        converged = False
+        while iterations < params.iterations:
+            iterations += 1
+            found = _linearised(points, target, tree, pose, params.max_distance_m, params)
+            if found is None:
+                return None
+            H, g, _, _ = found
+            offset = _offset(pose, seed)
+            try:
+                step = -np.linalg.solve(
+                    H / scale + information + 1e-9 * np.eye(3), g / scale + information @ offset
+                )
+            except np.linalg.LinAlgError:
+                return None
+            pose = pose + step
+            pose[2] = math.remainder(pose[2], 2 * math.pi)
+            if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
+                converged = True
+                break
     overlapping = _linearised(source, target, tree, pose, params.max_distance_m, params)
     final = _linearised(source, target, tree, pose, params.inlier_m, params)
     if overlapping is None or final is None:
@@ -264,8 +319,7 @@ def _linearised(
     points with a target within ``reach_m``, their residuals and Huber weights."""
     xy, dxy = _rotated(source.points, float(pose[2]))
     moved = np.c_[xy + pose[:2], source.points[:, 2]]
-    distance, index = tree.query(moved, distance_upper_bound=reach_m)
-    ok = np.isfinite(distance)
+    index, ok = _matches(source, target, tree, moved, float(pose[2]), reach_m)
     if ok.sum() < _MIN_POINTS:
         return None
     normal = target.normals[index[ok]]
@@ -276,6 +330,51 @@ def _linearised(
     H = J.T @ (J * weight[:, None])
     g = J.T @ (weight * residual)
     return H, g, residual, weight
+
+
+def _matches(
+    source: Cloud, target: Cloud, tree: cKDTree, moved: np.ndarray, yaw: float, reach_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each moved source point's target: the nearest of its ``_CANDIDATES`` nearest within
+    ``reach_m`` that has a normal facing the same way as its own (within 60°; either way when
+    the clouds' normals are not oriented; any with a normal when the source point has none).
+    Returns the targets' indices and whether one was found. The nearest target is tried first
+    for every point; the further candidates are looked up only for the points it does not
+    suit."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    n = source.normals
+    turned = np.c_[c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1], n[:, 2]]
+    distance, index = tree.query(moved, distance_upper_bound=reach_m)
+    found = np.isfinite(distance)
+    index = np.where(found, index, 0)
+    ok = found & _compatible(target.normals[index], turned, source.oriented and target.oriented)
+    retry = np.flatnonzero(found & ~ok)
+    k = min(_CANDIDATES, len(target))
+    if len(retry) and k > 1:
+        distance, candidates = tree.query(moved[retry], k=k, distance_upper_bound=reach_m)
+        near = np.isfinite(distance)
+        candidates = np.where(near, candidates, 0)
+        suits = near & _compatible(target.normals[candidates], turned[retry][:, None, :],
+                                   source.oriented and target.oriented)  # fmt: skip
+        first = np.argmax(suits, axis=1)
+        rows = np.arange(len(retry))
+        index[retry] = candidates[rows, first]
+        ok[retry] = suits[rows, first]
+    return index, ok
+
+
+def _compatible(
+    target_normals: np.ndarray, source_normals: np.ndarray, oriented: bool
+) -> np.ndarray:
+    """Whether target points (with these normals, (..., 3)) may pair with source points (normals
+    broadcast against them): the target has a normal, and the two agree within 60° (facing the
+    same way when ``oriented``), or the source point has none."""
+    agree = (target_normals * source_normals).sum(axis=-1)
+    if not oriented:
+        agree = np.abs(agree)
+    has_normal = (target_normals**2).sum(axis=-1) > 0.5
+    unnormed = (source_normals**2).sum(axis=-1) < 0.5
+    return has_normal & ((agree >= _COMPATIBLE) | unnormed)
 
 
 def _floored(covariance: np.ndarray, floor: np.ndarray) -> np.ndarray:

@@ -185,12 +185,15 @@ def cloud_of_views(
     params: StationParams,
     registration: RegistrationParams,
 ) -> Cloud:
-    """The views' points in the robot frame ``frame``, as a registration :class:`Cloud`."""
+    """The views' points in the robot frame ``frame``, as a registration :class:`Cloud` whose
+    normals face the scanners that saw them."""
     transforms = _T_frame_scanner(views, frame, estimate, params)
-    points = [
-        v.points_scanner @ T[:3, :3].T + T[:3, 3] for v, T in zip(views, transforms, strict=True)
-    ]
-    return Cloud.of(np.vstack(points) if points else np.zeros((0, 3)), registration)
+    pairs = zip(views, transforms, strict=True)
+    points = [v.points_scanner @ T[:3, :3].T + T[:3, 3] for v, T in pairs]
+    if not points:
+        return Cloud.empty()
+    origins = [np.broadcast_to(T[:3, 3], p.shape) for p, T in zip(points, transforms, strict=True)]
+    return Cloud.of(np.vstack(points), registration, viewpoints=np.vstack(origins))
 
 
 def fuse_views(

@@ -79,6 +79,47 @@ def test_a_corridor_is_uncertain_along_its_axis_and_a_prior_holds_the_seed_there
     assert np.sqrt(held.covariance[0, 0]) <= 0.0201
 
 
+def _slab_face(rng: np.random.Generator, x: float, n: int = 3000) -> np.ndarray:
+    """Points on one face (at ``x``) of a 2 m wide slab in the room's middle, 0.2–2.5 m high."""
+    face = np.c_[np.full(n, x), rng.uniform(-1.0, 1.0, n), rng.uniform(0.2, 2.5, n)]
+    return face + rng.normal(0, 0.003, (n, 3))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_two_faces_of_a_thin_wall_do_not_pair_once_normals_face_their_scanner(
+    seed: int,
+) -> None:
+    # Each robot sees the room and the face of a 25 cm slab on its side. Unoriented normals pair
+    # the two faces and pull the answer towards each other by ~5 cm (measured 4.7-5.0); normals
+    # turned towards the scanner keep the faces apart.
+    rng = np.random.default_rng(seed)
+    a, b = np.array([-1.5, 0.3, 0.2]), np.array([1.6, -0.4, math.pi - 0.3])
+    seen_a = _seen_from(np.vstack([_room(rng), _slab_face(rng, -0.125)]), a)
+    seen_b = _seen_from(np.vstack([_room(rng), _slab_face(rng, 0.125)]), b)
+    truth = se2.between(a, b)
+    start = truth + np.array([0.06, -0.04, math.radians(1.0)])
+
+    def scanner(points: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(np.array([0.0, 0.0, 0.5]), points.shape)
+
+    target = Cloud.of(seen_a, PARAMS, viewpoints=scanner(seen_a))
+    source = Cloud.of(seen_b, PARAMS, viewpoints=scanner(seen_b))
+    assert target.oriented
+    assert source.oriented
+    towards = (scanner(target.points) - target.points) * target.normals
+    assert (towards.sum(axis=1) >= 0).all()
+    found = register(source, target, start, PARAMS)
+    assert found is not None
+    assert found.accepted(PARAMS)
+    assert math.dist(found.pose[:2], truth[:2]) < 0.005
+    blind = register(Cloud.of(seen_b, PARAMS), Cloud.of(seen_a, PARAMS), start, PARAMS)
+    assert blind is not None
+    assert math.dist(blind.pose[:2], truth[:2]) > 0.03
+    joined = Cloud.joined([target, source.moved(truth)])
+    assert joined.oriented
+    assert not Cloud.joined([target, Cloud.of(seen_b, PARAMS)]).oriented
+
+
 def test_registration_of_clouds_that_do_not_overlap_is_none_or_refused() -> None:
     rng = np.random.default_rng(3)
     room = Cloud.of(_room(rng), PARAMS)
@@ -100,6 +141,13 @@ def test_bad_seeds_priors_and_points_are_refused_in_one_line() -> None:
     cloud = Cloud.of(with_nan, PARAMS)
     assert np.isfinite(cloud.points).all()
     assert np.isfinite(cloud.normals).all()
+    views = np.zeros_like(with_nan)
+    views[5] = math.nan  # a point whose viewpoint is unknown is dropped like a non-finite one
+    assert len(Cloud.of(with_nan, PARAMS, viewpoints=views)) <= len(cloud)
+    with pytest.raises(EstimationError, match="3 viewpoints for 4002 points"):
+        Cloud.of(with_nan, PARAMS, viewpoints=np.zeros((3, 3)))
+    with pytest.raises(EstimationError, match="cloud spans over"):
+        Cloud.of(np.vstack([_room(rng), [[1e9, 0.0, 0.0]]]), PARAMS)
 
 
 def test_clouds_move_join_and_crop_consistently() -> None:
