@@ -259,9 +259,8 @@ class RegistrationConfig(_Section):
     point-to-plane ICP seeded by the search (docs/design.md §7)."""
 
     enabled: bool = Field(
-        False, description="false: the search's pose is the measurement (docs/design.md §7: "
-        "measured, not yet the default)",
-    )  # fmt: skip
+        True, description="false: the search's pose is the measurement (docs/design.md §7)"
+    )
     voxel_m: float = Field(0.05, gt=0, le=1, description="points averaged per voxel")
     max_distance_m: float = Field(
         0.3, gt=0, le=5, description="farthest correspondence while iterating"

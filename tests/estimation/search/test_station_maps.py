@@ -21,7 +21,9 @@ from estimation.search.station_maps import (
     mutual_ties,
     tied_views,
 )
+from estimation.search.registration import RegistrationParams
 from estimation.search.station_maps import _moved_m as moved_m
+from estimation.search.stations import station_links
 from mapping.band import Band
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
@@ -152,6 +154,44 @@ def test_the_older_stations_map_is_appended_to_and_equals_the_map_fused_at_once(
     other = maps.older_band(stations[3], anchor, stations[1:3], TRUTH, ties)
     views = [v for s in stations[1:3] for v in tied_views(s, ties)]
     assert same_band(other, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
+
+
+def test_a_link_is_registered_on_the_stations_points_and_carries_their_covariance(
+    mission,
+) -> None:
+    """With ``registration``, a station link's factor is the registered pose of the stations'
+    clouds (normals facing the scanners) with the registration's covariance; the record keeps
+    the search's pose beside it."""
+    stations, factors = mission
+    params = dataclasses.replace(EXACT, registration=RegistrationParams())
+    # Station 1 (b1 with its mapper a1) believed 7 cm, 4 cm and 0.8° off.
+    off = np.array([0.07, -0.04, np.radians(0.8)])
+    estimate = dict(TRUTH)
+    for key in (pose_key("b", 1), pose_key("a", 1)):
+        estimate[key] = se2.compose(off, TRUTH[key])
+    maps = StationMaps(params)
+    events, records = station_links(stations, estimate, factors, params, back=(1,), maps=maps)
+    cloud = maps.cloud(stations[1], estimate, mutual_ties(factors))
+    assert cloud is not None
+    assert cloud.oriented
+    walls = np.abs(cloud.normals[:, 2]) < 0.5
+    centre = np.array([0.0, 0.0, T_robot_scanner(CONFIG)[2, 3]])  # the scanners stand near it
+    facing = ((centre - cloud.points[walls]) * cloud.normals[walls]).sum(axis=1) > 0
+    assert facing.mean() > 0.95
+    link = next(e for e in events if (e.robot, e.index) == ("b", 1))
+    truth = se2.between(TRUTH[pose_key("a", 0)], TRUTH[pose_key("b", 1)])
+    assert link.pose is not None
+    assert np.hypot(*(np.array(link.pose[:2]) - truth[:2])) < 0.01
+    assert abs(link.pose[2] - truth[2]) < np.radians(0.1)
+    assert link.covariance is not None
+    sigmas = np.sqrt(np.diag(np.array(link.covariance)))
+    assert (sigmas[:2] >= 0.005 * 0.999).all()  # the floor
+    assert sigmas[2] >= np.radians(0.05) * 0.999
+    record = next(r for r in records if r.station == "b1" and r.against == "a0")
+    assert record.used
+    assert record.searched is not None
+    assert record.inliers > 0.8
+    assert tuple(record.pose) == pytest.approx(link.pose)
 
 
 def test_the_movement_bound_covers_every_point() -> None:
