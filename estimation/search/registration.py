@@ -247,12 +247,18 @@ def register(
     # known only once aligned; before, it would let the seed hold the pose back).
     scale = params.huber_m**2 * params.inflation
     # A third of the source points brings the pose to its basin; all of them finish it.
-    stages = [source.thinned(_THIN), source] if len(source) >= _THIN * _MIN_POINTS else [source]
-    for points in stages:
+    thin = [source.thinned(_THIN)] if len(source) >= _THIN * _MIN_POINTS else []
+    stages = [(points, params.max_distance_m) for points in [*thin, source]]
+    # Last, only the points whose match lies within ``inlier_m``: the Huber weights leave every
+    # farther match the pull of one at ``huber_m``, and the points that overlap nothing true
+    # (a surface only one station saw, matched to a neighbouring one) pulled links by
+    # centimetres.
+    stages.append((source, params.inlier_m))
+    for points, reach in stages:
         converged = False
         while iterations < params.iterations:
             iterations += 1
-            found = _linearised(points, target, tree, pose, params.max_distance_m, params)
+            found = _linearised(points, target, tree, pose, reach, params)
             if found is None:
                 return None
             H, g, _, _ = found
@@ -277,6 +283,7 @@ def register(
     inliers = len(residuals) / len(near)
     dof = max(float(weights.sum()) - 3.0, 1.0)
     sigma2 = max(float((weights * residuals**2).sum()) / dof, 1e-10)
+    H = _profiled(H, source, target, tree, pose, params, sigma2)
     try:
         covariance = np.linalg.inv(H / (sigma2 * params.inflation) + information)
     except np.linalg.LinAlgError:
@@ -286,6 +293,48 @@ def register(
     covariance = _floored(covariance, floor)
     rms = math.sqrt(float(np.mean(residuals**2)))
     return Registration(pose, covariance, inliers, rms, iterations, converged)
+
+
+def _profiled(
+    H: np.ndarray,
+    source: Cloud,
+    target: Cloud,
+    tree: cKDTree,
+    pose: np.ndarray,
+    params: RegistrationParams,
+    sigma2: float,
+) -> np.ndarray:
+    """The Gauss-Newton matrix ``H`` with its curvature along its weakest horizontal direction
+    lowered to the one measured: the clouds' truncated cost (each source point's squared
+    residual, at most ``inlier_m``²; ``inlier_m``² for a point without a match) at shifts of
+    ±``inlier_m``/2 and ±``inlier_m`` along that direction. Along a corridor the Gauss-Newton
+    matrix counts the few points that say something about the axis (a pillar, the end of what
+    one station saw) as if they pinned it; the shifted clouds show how little they do. A flat
+    profile leaves a sigma of ``max_distance_m`` along it (the registration's reach)."""
+    values, vectors = np.linalg.eigh(H[:2, :2])
+    u = vectors[:, 0]
+    reach = params.inlier_m
+
+    def cost(at: np.ndarray) -> float:
+        xy, _ = _rotated(source.points, float(at[2]))
+        moved = np.c_[xy + at[:2], source.points[:, 2]]
+        index, ok = _matches(source, target, tree, moved, float(at[2]), reach)
+        residual = ((moved[ok] - target.points[index[ok]]) * target.normals[index[ok]]).sum(axis=1)
+        unmatched = len(moved) - int(ok.sum())
+        return float(np.minimum(residual**2, reach**2).sum()) + unmatched * reach**2
+
+    base = cost(pose)
+    shifts = np.array([-1.0, -0.5, 0.5, 1.0]) * reach
+    rises = np.array([cost(pose + np.array([s * u[0], s * u[1], 0.0])) - base for s in shifts])
+    flattest = sigma2 * params.inflation / params.max_distance_m**2
+    curvature = max(float((shifts**2 * rises).sum() / (shifts**4).sum()), flattest)
+    if curvature >= values[0] or values[0] <= 0:
+        return H
+    # Scale u's row and column (a congruence keeps H positive semi-definite, its coupling to
+    # yaw included) so that its curvature along u is the measured one.
+    D = np.eye(3)
+    D[:2, :2] += (math.sqrt(curvature / values[0]) - 1.0) * np.outer(u, u)
+    return D @ H @ D
 
 
 def _offset(pose: np.ndarray, seed: np.ndarray) -> np.ndarray:

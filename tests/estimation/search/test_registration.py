@@ -71,11 +71,12 @@ def test_a_corridor_is_uncertain_along_its_axis_and_a_prior_holds_the_seed_there
     assert free is not None
     sx, sy = np.sqrt(np.diag(free.covariance))[:2]
     assert sx > 5 * sy  # along the axis the points say little
+    assert sx > 0.05  # the cost profiled along it is near flat (0.08-0.30 over three seeds)
     assert abs(free.pose[1]) < 0.005  # across it they fix the pose
     held = register(source, target, seed, PARAMS, prior=np.diag([0.02, 0.02, 0.005]) ** 2)
     assert held is not None
     assert abs(held.pose[0] - seed[0]) < 0.01
-    assert abs(held.pose[1]) < 0.005
+    assert abs(held.pose[1]) < 0.01  # the prior 3 cm off moves it by 7 mm
     assert np.sqrt(held.covariance[0, 0]) <= 0.0201
 
 
@@ -89,13 +90,13 @@ def _slab_face(rng: np.random.Generator, x: float, n: int = 3000) -> np.ndarray:
 def test_the_two_faces_of_a_thin_wall_do_not_pair_once_normals_face_their_scanner(
     seed: int,
 ) -> None:
-    # Each robot sees the room and the face of a 25 cm slab on its side. Unoriented normals pair
-    # the two faces and pull the answer towards each other by ~5 cm (measured 4.7-5.0); normals
+    # Each robot sees the room and the face of an 8 cm slab on its side. Unoriented normals pair
+    # the two faces and pull the answer towards each other by ~4 cm (measured 4.1-4.2); normals
     # turned towards the scanner keep the faces apart.
     rng = np.random.default_rng(seed)
     a, b = np.array([-1.5, 0.3, 0.2]), np.array([1.6, -0.4, math.pi - 0.3])
-    seen_a = _seen_from(np.vstack([_room(rng), _slab_face(rng, -0.125)]), a)
-    seen_b = _seen_from(np.vstack([_room(rng), _slab_face(rng, 0.125)]), b)
+    seen_a = _seen_from(np.vstack([_room(rng), _slab_face(rng, -0.04)]), a)
+    seen_b = _seen_from(np.vstack([_room(rng), _slab_face(rng, 0.04)]), b)
     truth = se2.between(a, b)
     start = truth + np.array([0.06, -0.04, math.radians(1.0)])
 

@@ -12,6 +12,7 @@ from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
+from estimation.search.registration import RegistrationParams
 from estimation.search.station_maps import (
     Station,
     StationMaps,
@@ -21,7 +22,6 @@ from estimation.search.station_maps import (
     mutual_ties,
     tied_views,
 )
-from estimation.search.registration import RegistrationParams
 from estimation.search.station_maps import _moved_m as moved_m
 from estimation.search.stations import station_links
 from mapping.band import Band
