@@ -283,7 +283,8 @@ def register(
     inliers = len(residuals) / len(near)
     dof = max(float(weights.sum()) - 3.0, 1.0)
     sigma2 = max(float((weights * residuals**2).sum()) / dof, 1e-10)
-    H = _profiled(H, source, target, tree, pose, params, sigma2)
+    base = float((residuals**2).sum()) + (len(source) - len(residuals)) * params.inlier_m**2
+    H = _profiled(H, source, target, tree, pose, params, sigma2, base)
     try:
         covariance = np.linalg.inv(H / (sigma2 * params.inflation) + information)
     except np.linalg.LinAlgError:
@@ -303,6 +304,7 @@ def _profiled(
     pose: np.ndarray,
     params: RegistrationParams,
     sigma2: float,
+    base: float,
 ) -> np.ndarray:
     """The Gauss-Newton matrix ``H`` with its curvature along its weakest horizontal direction
     lowered to the one measured: the clouds' truncated cost (each source point's squared
@@ -310,7 +312,8 @@ def _profiled(
     ±``inlier_m``/2 along that direction. Along a corridor the Gauss-Newton
     matrix counts the few points that say something about the axis (a pillar, the end of what
     one station saw) as if they pinned it; the shifted clouds show how little they do. A flat
-    profile leaves a sigma of ``max_distance_m`` along it (the registration's reach)."""
+    profile leaves a sigma of ``max_distance_m`` along it (the registration's reach). ``base``:
+    the cost at ``pose``."""
     values, vectors = np.linalg.eigh(H[:2, :2])
     u = vectors[:, 0]
     reach = params.inlier_m
@@ -323,7 +326,6 @@ def _profiled(
         unmatched = len(moved) - int(ok.sum())
         return float(np.minimum(residual**2, reach**2).sum()) + unmatched * reach**2
 
-    base = cost(pose)
     shifts = np.array([-0.5, 0.5]) * reach
     rises = np.array([cost(pose + np.array([s * u[0], s * u[1], 0.0])) - base for s in shifts])
     flattest = sigma2 * params.inflation / params.max_distance_m**2
