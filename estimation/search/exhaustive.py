@@ -165,6 +165,33 @@ class SearchResult:
     def is_dominant(self, dominance_ratio: float) -> bool:
         return self.peak_ratio >= dominance_ratio
 
+    def modes(self, count: int, radius_m: float, radius_rad: float) -> list[np.ndarray]:
+        """Up to ``count`` poses (x, y, yaw): the refined best pose, then the most probable
+        lattice poses each farther than ``radius_m`` or ``radius_rad`` from every one before
+        it (the PDF's other modes, most probable first; none below 1e-12 of the best)."""
+        prob = np.asarray(self.prob)
+        t, y, x = self.best_index
+        chosen = [np.asarray(self.pose, dtype=float)]
+        taken = [(self.x_m[x], self.y_m[y], self.yaw_rad[t])]
+        floor = 1e-12 * float(prob[t, y, x])
+        # Candidates: the best pose of each yaw slice and position, most probable first.
+        flat = prob.max(axis=0)
+        yaw_of = prob.argmax(axis=0)
+        order = np.argsort(flat, axis=None)[::-1]
+        for index in order:
+            if len(chosen) >= count or flat.flat[index] <= floor:
+                break
+            iy, ix = np.unravel_index(int(index), flat.shape)
+            pose = (self.x_m[ix], self.y_m[iy], self.yaw_rad[yaw_of[iy, ix]])
+            if all(
+                math.hypot(pose[0] - q[0], pose[1] - q[1]) > radius_m
+                or abs(math.remainder(pose[2] - q[2], 2 * math.pi)) > radius_rad
+                for q in taken
+            ):
+                taken.append(pose)
+                chosen.append(np.array(pose, dtype=float))
+        return chosen
+
     def position_marginal(self) -> np.ndarray:
         """(Y, X) float64: the probability of each position, summed over rotations."""
         return np.asarray(self.prob.sum(axis=0, dtype=np.float64))

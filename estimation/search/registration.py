@@ -206,6 +206,7 @@ class Registration:
     rms_m: float
     iterations: int
     converged: bool
+    inlier_points: int = 0  # source points within ``inlier_m`` of a target
 
     def accepted(self, params: RegistrationParams) -> bool:
         return self.converged and self.inliers >= params.min_inliers
@@ -293,7 +294,7 @@ def register(
     floor = np.diag([params.min_sigma_m**2, params.min_sigma_m**2, params.min_sigma_rad**2])
     covariance = _floored(covariance, floor)
     rms = math.sqrt(float(np.mean(residuals**2)))
-    return Registration(pose, covariance, inliers, rms, iterations, converged)
+    return Registration(pose, covariance, inliers, rms, iterations, converged, len(residuals))
 
 
 def _profiled(

@@ -177,6 +177,37 @@ def test_dominance_is_low_in_a_symmetric_corridor() -> None:
     assert yaw_mass[flipped].sum() > 0.1
 
 
+def test_the_modes_of_a_corridor_are_distinct_and_most_probable_first() -> None:
+    scene = corridor(20.0, 2.4)
+    global_ = rasterise(scene, np.zeros(3), (0.0, -0.5), (34, 200), 0.1)
+    truth = np.array([9.0, 1.2, 0.3])
+    local = local_view(scene, truth, 3.0, 0.1, np.random.default_rng(2), noise=0.05)
+    result = search(local, global_, SearchParams())
+    radius_m, radius_rad = 0.5, math.radians(10.0)
+    modes = result.modes(5, radius_m, radius_rad)
+    assert len(modes) == 5
+    assert np.array_equal(modes[0], result.pose)
+    for i, a in enumerate(modes):
+        for b in modes[i + 1 :]:
+            apart = abs(math.remainder(a[2] - b[2], 2 * math.pi))
+            assert math.hypot(a[0] - b[0], a[1] - b[1]) > radius_m or apart > radius_rad
+    pdf = result.pdf
+
+    def density(pose: np.ndarray) -> float:
+        ix = int(np.argmin(np.abs(result.x_m - pose[0])))
+        iy = int(np.argmin(np.abs(result.y_m - pose[1])))
+        it = int(
+            np.argmin(
+                np.abs(np.remainder(result.yaw_rad - pose[2] + math.pi, 2 * math.pi) - math.pi)
+            )
+        )
+        return float(pdf.prob[it, iy, ix])
+
+    later = [density(m) for m in modes[1:]]
+    assert later == sorted(later, reverse=True)
+    assert len(result.modes(1, radius_m, radius_rad)) == 1
+
+
 def test_dominance_is_high_in_a_distinctive_room(room: tuple[Band, object]) -> None:
     global_, scene = room
     truth = np.array([4.6, 3.0, math.radians(140.0)])

@@ -14,6 +14,7 @@ from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.search.registration import RegistrationParams
 from estimation.search.station_maps import (
+    Dwell,
     Station,
     StationMaps,
     StationParams,
@@ -23,7 +24,7 @@ from estimation.search.station_maps import (
     tied_views,
 )
 from estimation.search.station_maps import _moved_m as moved_m
-from estimation.search.stations import station_links
+from estimation.search.stations import relocalize, station_links
 from mapping.band import Band
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
@@ -192,6 +193,36 @@ def test_a_link_is_registered_on_the_stations_points_and_carries_their_covarianc
     assert record.searched is not None
     assert record.inliers > 0.8
     assert tuple(record.pose) == pytest.approx(link.pose)
+
+
+def test_a_relocalization_is_registered_on_the_mapped_points(mission) -> None:
+    """After the changes, a robot believed 30 cm and 2° off is found by the search and its pose
+    registered on the mapped views' points: within a centimetre of the truth, the search's pose
+    kept beside it. Without registration the record is the search's pose. (The room is a box:
+    the pose turned by 180° about its centre fits as well, and lies outside the first window.)"""
+    stations, _ = mission
+    mapped = [v for s in stations for v in s.views]
+    truth = np.array([2.0, 1.5, 0.4])
+    TRUTH_AFTER = {**TRUTH, pose_key("a", 9): truth}
+    T_map_scanner = pose2_matrix(*truth) @ T_robot_scanner(CONFIG)
+    points_map = room_scan(T_map_scanner[:3, 3], ROOM, azimuth_steps=240, elevation_steps=60)
+    T_scanner_map = np.linalg.inv(T_map_scanner)
+    view = View("a", 9, points_map @ T_scanner_map[:3, :3].T + T_scanner_map[:3, 3])
+    believed = {**TRUTH_AFTER, pose_key("a", 9): truth + np.array([0.3, -0.2, np.radians(2.0)])}
+    params = dataclasses.replace(EXACT, registration=RegistrationParams())
+    records = relocalize([Dwell(100.0, (view,))], mapped, believed, params)
+    assert {r.band for r in records} == {"ceiling", "floor"}
+    for record in records:
+        assert record.kind == "relocalize"
+        assert record.searched is not None
+        assert np.hypot(*(np.array(record.pose[:2]) - truth[:2])) < 0.01
+        assert abs(record.pose[2] - truth[2]) < np.radians(0.1)
+        assert record.inliers > 0.8
+    plain = relocalize(
+        [Dwell(100.0, (view,))], mapped, believed, dataclasses.replace(EXACT, registration=None)
+    )
+    assert all(r.searched is None for r in plain)
+    assert [r.band for r in plain] == [r.band for r in records]
 
 
 def test_the_movement_bound_covers_every_point() -> None:
