@@ -490,7 +490,8 @@ class _MapPoints:
         registration = self.params.registration
         if registration is None or not self.mapped:
             return None
-        return cloud_of_views(self.mapped, np.zeros(3), self.estimate, self.params, registration)
+        views = [v for v in self.mapped if v.key in self.estimate]
+        return cloud_of_views(views, np.zeros(3), self.estimate, self.params, registration)
 
     def of_dwell(
         self, dwell: Dwell, frame: np.ndarray, estimate: dict[int, np.ndarray]
@@ -498,7 +499,8 @@ class _MapPoints:
         registration = self.params.registration
         if registration is None:
             return None
-        return cloud_of_views(list(dwell.views), frame, estimate, self.params, registration)
+        views = [v for v in dwell.views if v.key in estimate]  # a robot never tied: no pose
+        return cloud_of_views(views, frame, estimate, self.params, registration)
 
     def verified(self, sweep: Cloud | None, candidates: list[np.ndarray]) -> Registration | None:
         """The registration of ``sweep`` that lays the most of its points on the map, over the
