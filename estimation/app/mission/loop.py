@@ -129,6 +129,7 @@ class MissionLoop:
         self.now_s = 0.0
         self._fed = 0
         self.work_s: list[float] = []  # per dwell: from its end to the next command
+        self.waited_s: list[float] = []  # per wait on the concurrent localization (not work)
         self._since: float | None = None
         self._dwells = 0
         self.localizations: list[dict[str, Any]] = []
@@ -235,7 +236,16 @@ class MissionLoop:
         later (at the next station) the plans would rest on an uncorrected turn for a whole
         local map."""
         was_ready = self.localizer.ready
+        pending = self.localizer.busy and not was_ready
+        began = time.perf_counter()
         done = self.localizer.collect(self.now_s, wait=wait)
+        if pending and self._since is not None:
+            # Waiting on the worker is not the loop's work: a simulated dwell takes no time,
+            # a real one the 31 s of a sweep, in which the worker runs (its own time and
+            # budget are reported per station).
+            waited = time.perf_counter() - began
+            self._since += waited
+            self.waited_s.append(waited)
         if done is None:
             return
         _, submitted_s, collected_s = self.localizer.done[-1]
@@ -506,6 +516,9 @@ class MissionLoop:
             "work_per_dwell_s": {"median": float(np.median(work)),
                                  "p99": float(np.percentile(work, 99)), "max": float(work.max())},
             "map_refusions": self.map.refusions,
+            "localization_waits_s": {"count": len(self.waited_s),
+                                     "total": float(sum(self.waited_s)),
+                                     "max": float(max(self.waited_s, default=0.0))},
             "concurrent_localization": localizations,
             "retried_observations": self.retries,
             "unobserved_scans": self.unobserved,

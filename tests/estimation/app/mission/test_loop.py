@@ -90,6 +90,9 @@ def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) 
     assert loop["stop_reason"] == "station budget (2) spent"
     assert loop["dwells"] >= 6  # start, 2 × 2 scans, a station turn, the relocalization
     assert 0 < loop["work_per_dwell_s"]["median"] <= loop["work_per_dwell_s"]["p99"] < 5.0
+    waits = loop["localization_waits_s"]
+    assert 0 <= waits["max"] <= waits["total"]
+    assert waits["count"] <= len(loop["concurrent_localization"])
     assert [item["station"] for item in loop["concurrent_localization"]] == ["a0", "b3"]
     assert loop["concurrent_localization"][-1]["next_map_mission_s"] is None
     # The estimate steering the mission against the final one (the caller's figure).
