@@ -29,6 +29,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 from estimation.errors import EstimationError
@@ -175,21 +176,82 @@ def _normals(points: np.ndarray, params: RegistrationParams) -> np.ndarray:
     point is still matched as a source point, but no source point is matched to it)."""
     reach = _NORMAL_REACH * params.voxel_m
     k = min(params.neighbours, len(points))
-    distance, index = cKDTree(points).query(points, k=k, distance_upper_bound=reach)
-    valid = np.isfinite(distance)  # (N, k)
-    count = valid.sum(axis=1)
+    _, index = cKDTree(points).query(points, k=k, distance_upper_bound=reach)
     normals = np.zeros_like(points)
-    enough = count >= _MIN_NEIGHBOURS
-    if not enough.any():
-        return normals
-    index, valid, count = index[enough], valid[enough], count[enough]
-    near = points[np.where(valid, index, 0)] * valid[:, :, None]  # (M, k, 3), missing ones zero
-    mean = near.sum(axis=1) / count[:, None]
-    offset = (near - mean[:, None, :]) * valid[:, :, None]
-    covariance = np.einsum("mki,mkj->mij", offset, offset)
-    _, vectors = np.linalg.eigh(covariance)  # ascending: the first axis is the normal
-    normals[enough] = vectors[:, :, 0]
+    _plane_normals(points, index.reshape(len(points), k), _MIN_NEIGHBOURS, normals)
     return normals
+
+
+@njit(cache=True, nogil=True)
+def _plane_normals(points: np.ndarray, index: np.ndarray, least: int, out: np.ndarray) -> None:
+    """Into ``out[i]``: the unit normal of the plane through point i's neighbours ``index[i]``
+    (a cKDTree answer: ``len(points)`` where none), the axis of their scatter matrix with the
+    smallest eigenvalue; left as is where fewer than ``least`` neighbours were found."""
+    n, k = index.shape
+    scatter = np.empty((3, 3))
+    vectors = np.empty((3, 3))
+    mean = np.empty(3)
+    for i in range(n):
+        count = 0
+        mean[:] = 0.0
+        for j in range(k):
+            m = index[i, j]
+            if m < n:
+                count += 1
+                for a in range(3):
+                    mean[a] += points[m, a]
+        if count < least:
+            continue
+        mean /= count
+        scatter[:] = 0.0
+        for j in range(k):
+            m = index[i, j]
+            if m < n:
+                for a in range(3):
+                    da = points[m, a] - mean[a]
+                    for b in range(a, 3):
+                        scatter[a, b] += da * (points[m, b] - mean[b])
+        scatter[1, 0], scatter[2, 0], scatter[2, 1] = scatter[0, 1], scatter[0, 2], scatter[1, 2]
+        smallest = _jacobi3(scatter, vectors)
+        for a in range(3):
+            out[i, a] = vectors[a, smallest]
+
+
+@njit(cache=True, nogil=True)
+def _jacobi3(a: np.ndarray, v: np.ndarray) -> int:
+    """Diagonalises the symmetric 3×3 ``a`` in place by cyclic Jacobi rotations; ``v`` receives
+    the eigenvectors as columns. Returns the column of the smallest eigenvalue."""
+    v[:] = 0.0
+    for d in range(3):
+        v[d, d] = 1.0
+    for _ in range(30):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        size = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off == 0.0 or off <= 1e-30 * size:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+            if theta < 0.0:
+                t = -t
+            c = 1.0 / math.sqrt(t * t + 1.0)
+            s = t * c
+            for r in range(3):  # a J
+                arp, arq = a[r, p], a[r, q]
+                a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
+            for r in range(3):  # Jᵀ (a J)
+                apr, aqr = a[p, r], a[q, r]
+                a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
+            for r in range(3):  # the eigenvectors: v J
+                vrp, vrq = v[r, p], v[r, q]
+                v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
+    smallest = 0
+    for d in range(1, 3):
+        if a[d, d] < a[smallest, smallest]:
+            smallest = d
+    return smallest
 
 
 @dataclass(frozen=True)
@@ -210,13 +272,6 @@ class Registration:
 
     def accepted(self, params: RegistrationParams) -> bool:
         return self.converged and self.inliers >= params.min_inliers
-
-
-def _rotated(points: np.ndarray, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) the points' xy rotated by yaw, and their derivative with respect to yaw."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    x, y = points[:, 0], points[:, 1]
-    return np.c_[c * x - s * y, s * x + c * y], np.c_[-s * x - c * y, c * x - s * y]
 
 
 def register(
@@ -320,11 +375,9 @@ def _profiled(
     reach = params.inlier_m
 
     def cost(at: np.ndarray) -> float:
-        xy, _ = _rotated(source.points, float(at[2]))
-        moved = np.c_[xy + at[:2], source.points[:, 2]]
-        index, ok = _matches(source, target, tree, moved, float(at[2]), reach)
-        residual = ((moved[ok] - target.points[index[ok]]) * target.normals[index[ok]]).sum(axis=1)
-        unmatched = len(moved) - int(ok.sum())
+        index, ok = _matches(source, target, tree, at, reach)
+        _, _, residual, _ = _system(source, target, index, ok, at, params.huber_m)
+        unmatched = len(source) - len(residual)
         return float(np.minimum(residual**2, reach**2).sum()) + unmatched * reach**2
 
     shifts = np.array([-0.5, 0.5]) * reach
@@ -369,64 +422,117 @@ def _linearised(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The Gauss-Newton system (H, g) of the point-to-plane residuals at ``pose`` over the source
     points with a target within ``reach_m``, their residuals and Huber weights."""
-    xy, dxy = _rotated(source.points, float(pose[2]))
-    moved = np.c_[xy + pose[:2], source.points[:, 2]]
-    index, ok = _matches(source, target, tree, moved, float(pose[2]), reach_m)
+    index, ok = _matches(source, target, tree, pose, reach_m)
     if ok.sum() < _MIN_POINTS:
         return None
-    normal = target.normals[index[ok]]
-    residual = ((moved[ok] - target.points[index[ok]]) * normal).sum(axis=1)
-    J = np.c_[normal[:, 0], normal[:, 1], (normal[:, :2] * dxy[ok]).sum(axis=1)]
-    size = np.abs(residual)
-    weight = np.where(size <= params.huber_m, 1.0, params.huber_m / np.maximum(size, 1e-12))
-    H = J.T @ (J * weight[:, None])
-    g = J.T @ (weight * residual)
+    return _system(source, target, index, ok, pose, params.huber_m)
+
+
+def _system(
+    source: Cloud, target: Cloud, index: np.ndarray, ok: np.ndarray, pose: np.ndarray,
+    huber_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(H, g, residuals, Huber weights) of the matched source points (``ok``) at ``pose``."""
+    count = int(ok.sum())
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    residual, weight = np.empty(count), np.empty(count)
+    _gauss_newton(source.points, target.points, target.normals, index, ok,
+                  float(pose[0]), float(pose[1]), float(pose[2]), huber_m,
+                  H, g, residual, weight)  # fmt: skip
     return H, g, residual, weight
 
 
+@njit(cache=True, nogil=True)
+def _gauss_newton(
+    points: np.ndarray, targets: np.ndarray, normals: np.ndarray, index: np.ndarray,
+    ok: np.ndarray, x: float, y: float, yaw: float, huber_m: float, H: np.ndarray, g: np.ndarray,
+    residuals: np.ndarray, weights: np.ndarray,
+) -> None:  # fmt: skip
+    """Accumulates Jᵀ W J into ``H`` and Jᵀ W r into ``g`` over the source ``points`` moved by
+    (x, y, yaw) and matched (``ok``) to ``targets[index]``: r the distance to the target's
+    tangent plane, W the Huber weight; writes r and W in order of the matched points."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    row = 0
+    for i in range(len(points)):
+        if not ok[i]:
+            continue
+        px, py = points[i, 0], points[i, 1]
+        t = index[i]
+        nx, ny, nz = normals[t, 0], normals[t, 1], normals[t, 2]
+        r = ((c * px - s * py + x - targets[t, 0]) * nx
+             + (s * px + c * py + y - targets[t, 1]) * ny
+             + (points[i, 2] - targets[t, 2]) * nz)  # fmt: skip
+        j2 = nx * (-s * px - c * py) + ny * (c * px - s * py)
+        size = abs(r)
+        w = 1.0 if size <= huber_m else huber_m / max(size, 1e-12)
+        J = (nx, ny, j2)
+        for a in range(3):
+            g[a] += J[a] * w * r
+            for b in range(3):
+                H[a, b] += J[a] * w * J[b]
+        residuals[row] = r
+        weights[row] = w
+        row += 1
+
+
 def _matches(
-    source: Cloud, target: Cloud, tree: cKDTree, moved: np.ndarray, yaw: float, reach_m: float
+    source: Cloud, target: Cloud, tree: cKDTree, pose: np.ndarray, reach_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Each moved source point's target: the nearest of its ``_CANDIDATES`` nearest within
-    ``reach_m`` that has a normal facing the same way as its own (within 60°; either way when
-    the clouds' normals are not oriented; any with a normal when the source point has none).
+    """Each source point's target at ``pose``: the nearest of its ``_CANDIDATES`` nearest
+    within ``reach_m`` that has a normal facing the same way as its own (within 60°; either way
+    when the clouds' normals are not oriented; any with a normal when the source point has none).
     Returns the targets' indices and whether one was found. The nearest target is tried first
     for every point; the further candidates are looked up only for the points it does not
     suit."""
+    yaw = float(pose[2])
     c, s = math.cos(yaw), math.sin(yaw)
-    n = source.normals
-    turned = np.c_[c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1], n[:, 2]]
-    distance, index = tree.query(moved, distance_upper_bound=reach_m)
-    found = np.isfinite(distance)
-    index = np.where(found, index, 0)
-    ok = found & _compatible(target.normals[index], turned, source.oriented and target.oriented)
-    retry = np.flatnonzero(found & ~ok)
+    p = source.points
+    moved = np.c_[c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1], p[:, 2]]
+    oriented = source.oriented and target.oriented
+    _, nearest = tree.query(moved, distance_upper_bound=reach_m)
+    rows = np.arange(len(moved))
+    index, ok = np.zeros(len(moved), dtype=np.int64), np.zeros(len(moved), dtype=bool)
+    _pick(nearest.reshape(-1, 1), rows, target.normals, source.normals, c, s, oriented, index, ok)
+    retry = np.flatnonzero((nearest < len(target)) & ~ok)
     k = min(_CANDIDATES, len(target))
     if len(retry) and k > 1:
-        distance, candidates = tree.query(moved[retry], k=k, distance_upper_bound=reach_m)
-        near = np.isfinite(distance)
-        candidates = np.where(near, candidates, 0)
-        suits = near & _compatible(target.normals[candidates], turned[retry][:, None, :],
-                                   source.oriented and target.oriented)  # fmt: skip
-        first = np.argmax(suits, axis=1)
-        rows = np.arange(len(retry))
-        index[retry] = candidates[rows, first]
-        ok[retry] = suits[rows, first]
+        _, candidates = tree.query(moved[retry], k=k, distance_upper_bound=reach_m)
+        _pick(candidates, retry, target.normals, source.normals, c, s, oriented, index, ok)
     return index, ok
 
 
-def _compatible(
-    target_normals: np.ndarray, source_normals: np.ndarray, oriented: bool
-) -> np.ndarray:
-    """Whether target points (with these normals, (..., 3)) may pair with source points (normals
-    broadcast against them): the target has a normal, and the two agree within 60° (facing the
-    same way when ``oriented``), or the source point has none."""
-    agree = (target_normals * source_normals).sum(axis=-1)
-    if not oriented:
-        agree = np.abs(agree)
-    has_normal = (target_normals**2).sum(axis=-1) > 0.5
-    unnormed = (source_normals**2).sum(axis=-1) < 0.5
-    return has_normal & ((agree >= _COMPATIBLE) | unnormed)
+@njit(cache=True, nogil=True)
+def _pick(
+    candidates: np.ndarray, rows: np.ndarray, target_normals: np.ndarray,
+    source_normals: np.ndarray, c: float, s: float, oriented: bool, index: np.ndarray,
+    ok: np.ndarray,
+) -> None:  # fmt: skip
+    """For source point ``rows[r]`` (its normal turned by the yaw's cosine and sine): the first
+    of ``candidates[r]`` (a cKDTree answer, nearest first, ``len(target_normals)`` where none)
+    that may pair with it into ``index``, and ``ok``; the nearest (or 0) and False when none
+    may. A target may pair when it has a normal and the two normals agree within 60° (facing the
+    same way when ``oriented``), or when the source point has no normal."""
+    n = len(target_normals)
+    for r in range(len(rows)):
+        i = rows[r]
+        sx, sy, sz = source_normals[i, 0], source_normals[i, 1], source_normals[i, 2]
+        tx, ty = c * sx - s * sy, s * sx + c * sy
+        unnormed = sx * sx + sy * sy + sz * sz < 0.5
+        first = candidates[r, 0]
+        index[i], ok[i] = first if first < n else 0, False
+        for j in range(candidates.shape[1]):
+            t = candidates[r, j]
+            if t >= n:
+                break
+            nx, ny, nz = target_normals[t, 0], target_normals[t, 1], target_normals[t, 2]
+            if nx * nx + ny * ny + nz * nz <= 0.5:
+                continue
+            agree = nx * tx + ny * ty + nz * sz
+            if not oriented:
+                agree = abs(agree)
+            if agree >= _COMPATIBLE or unnormed:
+                index[i], ok[i] = t, True
+                break
 
 
 def _floored(covariance: np.ndarray, floor: np.ndarray) -> np.ndarray:

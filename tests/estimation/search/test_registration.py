@@ -9,7 +9,14 @@ import pytest
 
 from estimation.errors import EstimationError
 from estimation.posegraph.events import checked_covariance
-from estimation.search.registration import Cloud, RegistrationParams, register
+from estimation.search.registration import (
+    Cloud,
+    RegistrationParams,
+    _gauss_newton,
+    _jacobi3,
+    _normals,
+    register,
+)
 from sensors.geometry import se2
 
 PARAMS = RegistrationParams()
@@ -181,3 +188,60 @@ def test_clouds_move_join_and_crop_consistently() -> None:
 def test_a_localize_covariance_must_be_a_covariance(bad: object) -> None:
     with pytest.raises(EstimationError, match=r"Localize\.covariance"):
         checked_covariance(bad, "event 3: Localize.covariance")
+
+
+def test_jacobi_eigenvectors_agree_with_lapack_including_degenerate_spectra() -> None:
+    rng = np.random.default_rng(7)
+    matrices = [m @ m.T for m in rng.normal(size=(200, 3, 3))]
+    matrices += [np.diag([1.0, 1.0, 1e-9]), np.diag([2.0, 2.0, 2.0]), np.zeros((3, 3)),
+                 np.outer([1.0, 2.0, 3.0], [1.0, 2.0, 3.0])]  # fmt: skip
+    for m in matrices:
+        a, v = m.copy(), np.empty((3, 3))
+        smallest = _jacobi3(a, v)
+        values, vectors = np.linalg.eigh(m)
+        np.testing.assert_allclose(v.T @ v, np.eye(3), atol=1e-12)  # orthonormal
+        np.testing.assert_allclose(m @ v, v * np.diag(a), atol=1e-9 * max(1.0, values[-1]))
+        assert a[smallest, smallest] == pytest.approx(values[0], abs=1e-9 * max(1.0, values[-1]))
+        if values[1] - values[0] > 1e-6 * max(1.0, values[-1]):  # a unique smallest axis
+            assert abs(v[:, smallest] @ vectors[:, 0]) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_normals_are_the_smallest_principal_axes_and_zero_without_neighbours() -> None:
+    rng = np.random.default_rng(3)
+    points = Cloud.of(_room(rng), PARAMS).points
+    far = np.array([[50.0, 50.0, 1.0]])  # no neighbour within reach: no normal
+    normals = _normals(np.vstack([points, far]), PARAMS)
+    assert np.all(normals[-1] == 0.0)
+    from scipy.spatial import cKDTree
+
+    reach = 6.0 * PARAMS.voxel_m
+    distance, index = cKDTree(points).query(points, k=PARAMS.neighbours, distance_upper_bound=reach)
+    for i in rng.choice(len(points), 50, replace=False):
+        near = points[index[i][np.isfinite(distance[i])]]
+        _, vectors = np.linalg.eigh(np.cov(near.T))
+        assert abs(normals[i] @ vectors[:, 0]) == pytest.approx(1.0, abs=1e-9)
+    walls = np.abs(normals[:-1, 2]) < 0.5  # walls and pillar: horizontal normals
+    assert walls.mean() > 0.95
+
+
+def test_gauss_newton_kernel_matches_the_formula() -> None:
+    rng = np.random.default_rng(5)
+    points, targets = rng.normal(size=(40, 3)), rng.normal(size=(30, 3))
+    normals = rng.normal(size=(30, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    index, ok = rng.integers(0, 30, 40), rng.random(40) < 0.7
+    x, y, yaw, huber = 0.3, -0.2, 0.4, 0.5
+    H, g = np.zeros((3, 3)), np.zeros(3)
+    residual, weight = np.empty(ok.sum()), np.empty(ok.sum())
+    _gauss_newton(points, targets, normals, index, ok, x, y, yaw, huber, H, g, residual, weight)
+    c, s = math.cos(yaw), math.sin(yaw)
+    p, n, t = points[ok], normals[index[ok]], targets[index[ok]]
+    moved = np.c_[c * p[:, 0] - s * p[:, 1] + x, s * p[:, 0] + c * p[:, 1] + y, p[:, 2]]
+    r = ((moved - t) * n).sum(axis=1)
+    J = np.c_[n[:, 0], n[:, 1], n[:, 0] * (-s * p[:, 0] - c * p[:, 1])
+              + n[:, 1] * (c * p[:, 0] - s * p[:, 1])]  # fmt: skip
+    w = np.where(np.abs(r) <= huber, 1.0, huber / np.abs(r))
+    np.testing.assert_allclose(residual, r, atol=1e-12)
+    np.testing.assert_allclose(weight, w, atol=1e-12)
+    np.testing.assert_allclose(H, J.T @ (J * w[:, None]), atol=1e-10)
+    np.testing.assert_allclose(g, J.T @ (w * r), atol=1e-10)
