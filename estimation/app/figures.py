@@ -36,6 +36,8 @@ __all__ = [
 
 _DOOR_COLOR = "#e07b00"
 _WINDOW_COLOR = "#2aa6d6"
+#: Facets per side of a PDF surface at most.
+_FACETS = 150
 
 
 def _new_figure(width_in: float, height_in: float) -> Figure:
@@ -344,6 +346,16 @@ def render_sweep(
     return path
 
 
+def _block_max(values: np.ndarray, step_y: int, step_x: int) -> np.ndarray:
+    """The maximum of each ``step_y`` × ``step_x`` block of ``values`` (2D; partial blocks at
+    the ends), one value per block."""
+    if values.size == 0 or (step_y == 1 and step_x == 1):
+        return values
+    h, w = values.shape
+    rows = np.maximum.reduceat(values, np.arange(0, h, step_y), axis=0)
+    return np.maximum.reduceat(rows, np.arange(0, w, step_x), axis=1)
+
+
 def render_search_pdf(picture: Any, pose: np.ndarray, path: Path | str, *, title: str) -> Path:
     """A search's position PDF (paper Fig. 5b): P(x, y) summed over the rotations as a surface
     over the window searched, beside the map searched with the local band's occupied cells at the
@@ -355,11 +367,12 @@ def render_search_pdf(picture: Any, pose: np.ndarray, path: Path | str, *, title
     marginal = np.asarray(picture.marginal, dtype=np.float64)
     peak = float(marginal.max()) if marginal.size else 0.0
     relative = marginal / peak if peak > 0 else marginal
-    # At most 150 × 150 facets: the surface's shape, drawn in well under a second.
-    step_y = max(1, math.ceil(relative.shape[0] / 150))
-    step_x = max(1, math.ceil(relative.shape[1] / 150))
+    # At most _FACETS × _FACETS facets, each the highest of the positions it covers (a stride
+    # could step over a sharp peak): the surface's shape, drawn in a fraction of a second.
+    step_y = max(1, math.ceil(relative.shape[0] / _FACETS))
+    step_x = max(1, math.ceil(relative.shape[1] / _FACETS))
     xs, ys = picture.x_m[::step_x], picture.y_m[::step_y]
-    surface = relative[::step_y, ::step_x]
+    surface = _block_max(relative, step_y, step_x)
     figure = _new_figure(13.0, 5.6)
     ax_pdf = figure.add_subplot(1, 2, 1, projection="3d")
     if surface.size:

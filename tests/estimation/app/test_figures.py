@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from estimation.app.figures import render_search_pdf, render_sweep, render_trajectories
+from estimation.app.figures import _block_max, render_search_pdf, render_sweep, render_trajectories
 from estimation.app.results import MAX_PDF_FIGURES, _pdf_figures
 from estimation.search.stations import SearchPicture, SearchRecord, records_json
 from mapping.band import Band
@@ -108,3 +108,14 @@ def test_a_pictures_pdf_sums_to_one_and_stays_out_of_the_report() -> None:
     row = records_json([_record("loop", "a5", used=True, t=1.0)])[0]
     assert "picture" not in row
     assert row["station"] == "a5"
+
+
+def test_the_pdf_surface_keeps_a_one_position_peak_when_it_is_coarsened() -> None:
+    values = np.zeros((301, 250))
+    values[137, 91] = 1.0  # a peak one position wide that a stride of 6 would step over
+    coarse = _block_max(values, 6, 5)
+    assert coarse.shape == (51, 50)
+    assert coarse[137 // 6, 91 // 5] == 1.0
+    assert np.count_nonzero(coarse) == 1
+    assert _block_max(values, 1, 1) is values
+    assert _block_max(np.zeros((0, 0)), 3, 3).size == 0
