@@ -127,13 +127,10 @@ def as_logged(
     """Stamps and poses exactly as :func:`read_tum` reads them back from :func:`write_tum`
     with ``decimals`` (what a consumer of a live log sees and what a later reader of the file
     sees are then the same numbers)."""
-    stamps, out = [], []
-    for row in tum_rows(np.asarray(stamps_s, dtype=float), np.asarray(poses, dtype=float),
-                        decimals=decimals):  # fmt: skip
-        t, x, y, _, _, _, qz, qw = (float(f) for f in row.split())
-        stamps.append(t)
-        out.append((x, y, float(wrap_angle(2.0 * math.atan2(qz, qw)))))
-    return np.asarray(stamps, dtype=float), np.asarray(out, dtype=float).reshape(-1, 3)
+    rows = tum_rows(np.asarray(stamps_s, dtype=float), np.asarray(poses, dtype=float),
+                    decimals=decimals)  # fmt: skip
+    values = np.array([row.split() for row in rows], dtype=np.float64).reshape(-1, 8)
+    return values[:, 0].copy(), _planar(values)
 
 
 def pose_at(stamps_s: np.ndarray, poses: np.ndarray, t_s: float) -> np.ndarray:
@@ -148,33 +145,53 @@ def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
     """(stamps_s (N,), poses (N, 3)) from a TUM file; yaw from the quaternion.
 
     Rejects lines without 8 numbers, non-unit quaternions, tilted poses (this is a planar
-    framework) and timestamps that go backwards.
+    framework) and timestamps that go backwards, naming the first such line.
     """
     path = Path(path)
-    stamps: list[float] = []
-    poses: list[tuple[float, float, float]] = []
+    numbers: list[int] = []
+    rows: list[list[str]] = []
     for number, fields in _lines(path):
         if len(fields) != 8:
             raise TrajectoryError(
                 f"{path}:{number}: TUM line needs 8 fields (t x y z qx qy qz qw), got {len(fields)}"
             )
-        t, x, y, _, qx, qy, qz, qw = _floats(path, number, fields, "TUM line")
-        norm = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        if abs(norm - 1.0) > 1e-3:
-            raise TrajectoryError(f"{path}:{number}: quaternion norm is {norm:.6g}, not 1")
-        if math.hypot(qx, qy) / norm > 1e-3:
-            raise TrajectoryError(
-                f"{path}:{number}: pose is tilted (qx={qx}, qy={qy}); planar poses only"
-            )
-        if stamps and t < stamps[-1]:
-            raise TrajectoryError(
-                f"{path}:{number}: timestamp {t} goes back (previous {stamps[-1]})"
-            )
-        stamps.append(t)
-        poses.append((x, y, float(wrap_angle(2.0 * math.atan2(qz, qw)))))
-    if not stamps:
+        numbers.append(number)
+        rows.append(fields)
+    if not rows:
         raise TrajectoryError(f"{path}: no poses in the TUM file")
-    return np.asarray(stamps), np.asarray(poses).reshape(-1, 3)
+    try:
+        values = np.array(rows, dtype=np.float64)
+    except ValueError:  # the line-by-line parse names the bad line
+        values = np.array(
+            [_floats(path, n, fields, "TUM line") for n, fields in zip(numbers, rows, strict=True)]
+        )
+    t, qx, qy, qz, qw = values[:, 0], values[:, 4], values[:, 5], values[:, 6], values[:, 7]
+
+    def first(bad: np.ndarray) -> int | None:
+        where = np.flatnonzero(bad)
+        return int(where[0]) if len(where) else None
+
+    if (row := first(~np.isfinite(values).all(axis=1))) is not None:
+        raise TrajectoryError(f"{path}:{numbers[row]}: TUM line: non-finite value in {rows[row]}")
+    norm = np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    if (row := first(np.abs(norm - 1.0) > 1e-3)) is not None:
+        raise TrajectoryError(f"{path}:{numbers[row]}: quaternion norm is {norm[row]:.6g}, not 1")
+    if (row := first(np.hypot(qx, qy) / norm > 1e-3)) is not None:
+        raise TrajectoryError(
+            f"{path}:{numbers[row]}: pose is tilted (qx={qx[row]}, qy={qy[row]}); planar poses only"
+        )
+    if (row := first(np.diff(t) < 0.0)) is not None:
+        raise TrajectoryError(
+            f"{path}:{numbers[row + 1]}: timestamp {t[row + 1]} goes back (previous {t[row]})"
+        )
+    return t.copy(), _planar(values)
+
+
+def _planar(values: np.ndarray) -> np.ndarray:
+    """(N, 3) x, y, yaw of TUM rows (N, 8) (yaw from the quaternion about z)."""
+    return np.c_[
+        values[:, 1], values[:, 2], wrap_angle(2.0 * np.arctan2(values[:, 6], values[:, 7]))
+    ]
 
 
 @dataclass(frozen=True)

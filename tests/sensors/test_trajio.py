@@ -58,6 +58,14 @@ def test_tum_quaternion_is_a_rotation_about_z(tmp_path: Path) -> None:
         ("1 0 0 0 0.7071068 0 0 0.7071068\n", r"t\.tum:1: pose is tilted"),
         ("2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n", r"t\.tum:2: timestamp 1\.0 goes back"),
         ("# only a comment\n", r"t\.tum: no poses in the TUM file"),
+        # the first bad line is named past comments and blank lines
+        ("# c\n1 0 0 0 0 0 0 1\n\n2 0 0 0 0 0 0 nan\n3 0 0 0 0 0 0 2\n", r"t\.tum:4: .*non-finite"),
+        ("1 0 0 0 0 0 0 1\n# c\n2 0 0 0 0 0 0x10 1\n", r"t\.tum:3: TUM line: not a number"),
+        (
+            "1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n\n1.5 0 0 0 0 0 0 1\n",
+            r"t\.tum:4: timestamp 1\.5 goes back",
+        ),
+        ("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1.01\n", r"t\.tum:2: quaternion norm is 1\.01"),
     ],
 )
 def test_corrupt_tum_files_are_named_with_line_and_reason(
