@@ -61,6 +61,9 @@ _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
 #: this much nearer nor grew the known floor within this radius of it by this much.
 _PATIENCE = 3
 _PROGRESS_M, _PROGRESS_M2, _PROGRESS_RADIUS_M = 0.3, 0.5, 3.0
+#: A frontier whose centroid lies this close to the tracked target's is that target (frontiers
+#: move and change shape as the map grows).
+_SAME_TARGET_M = 1.5
 #: A frontier counts when it has this many cells and borders at least this much unknown floor
 #: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
@@ -264,9 +267,14 @@ class Explorer:
         )
 
     def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Frontier | None:
-        """The reachable frontier nearest (by path) to any of ``from_xy``, not given up. When
-        only given-up frontiers are left, each gets one more chance (the map has grown since);
-        one given up twice stays given up."""
+        """The frontier the pair works on while it is still reachable and not given up (the
+        tracked target); else the reachable frontier nearest (by path) to any of ``from_xy``,
+        not given up. When only given-up frontiers are left, each gets one more chance (the map
+        has grown since); one given up twice stays given up.
+
+        Keeping the target matters: the two robots stand a few metres apart and swap roles at
+        every station, and the frontier nearest to the pair flipped between two sides of a room
+        from one station to the next (generated building 0: 8 stations zigzagging over 3 m)."""
         starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
         if not starts:
             return None
@@ -275,14 +283,24 @@ class Explorer:
             view.floor, view.space, robot_radius_m=view.radius_m,
             min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
         )  # fmt: skip
+        target = self.target
         for attempt in (0, 1):
             best, best_m = None, math.inf
+            kept, kept_m = None, math.inf
             for frontier in found:
                 if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
                     continue
                 d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
                 if d < best_m:
                     best, best_m = frontier, d
+                if (
+                    target is not None
+                    and d < kept_m
+                    and math.dist(frontier.centroid_xy, target.centroid) <= _SAME_TARGET_M
+                ):
+                    kept, kept_m = frontier, d
+            if kept is not None:
+                return kept
             if best is not None or attempt or not self.given_up or self.retried:
                 return best
             self.retried, self.given_up = list(self.given_up), []
@@ -297,7 +315,7 @@ class Explorer:
             return
         known = _known_near(view, frontier.centroid_xy)
         t = self.target
-        if t is None or math.dist(t.centroid, frontier.centroid_xy) > 1.5:
+        if t is None or math.dist(t.centroid, frontier.centroid_xy) > _SAME_TARGET_M:
             self.target = _Target(frontier.centroid_xy.copy(), distance_m, known)
             return
         if distance_m < t.best_m - _PROGRESS_M or known >= t.known_m2 + _PROGRESS_M2:

@@ -233,6 +233,32 @@ def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
     assert explorer.target is None
 
 
+def test_the_pair_keeps_its_target_frontier_while_it_is_reachable_and_not_given_up(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def cells_at(x: float, y: float) -> Frontier:
+        row, col = view.space.cell(np.array([x, y]))
+        cells = np.array([[row, col + k] for k in range(5)], dtype=np.int64)
+        return Frontier(cells, np.array([x, y]), 5)
+
+    near, far = cells_at(1.5, 1.0), cells_at(5.0, 3.0)
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [far, near])
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    robots = [np.array([1.0, 1.0])]
+    assert explorer.frontier(view, robots) is near  # no target yet: the nearest
+    explorer.progress(far, 4.5, view)  # the pair works on the far one
+    assert explorer.frontier(view, robots) is far
+    moved = cells_at(4.4, 3.3)  # the target receded as the map grew: still the target
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, moved])
+    assert explorer.frontier(view, robots) is moved
+    explorer.given_up.append(moved.centroid_xy.copy())  # given up: the nearest again
+    assert explorer.frontier(view, robots) is near
+    explorer.given_up.clear()
+    blocked = Frontier(np.array([[0, 0]] * 5, dtype=np.int64), np.array([5.5, 3.0]), 5)
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, blocked])
+    assert explorer.frontier(view, robots) is near  # the target unreachable: the nearest
+
+
 def test_a_turn_is_tied_at_once_or_through_pivots_seen_before_and_after_each_part(
     view: MapView,
 ) -> None:
