@@ -279,43 +279,30 @@ def plan_leapfrog(
         if route.done:
             break
         at: list[float] | None = None
+        headings = [float(ref[2])]
         if k > 0:
             heading = (
                 route.heading(ref)
                 if route.active
                 else _best_heading(ref, poses[mapper], space, coverage, geometry, band)
             )
-            if abs(math.remainder(heading - ref[2], 2 * math.pi)) > 1e-6:
-                ref = np.array([ref[0], ref[1], heading])
-                poses[reference] = ref
-                at = as_spec(ref)
+            # When no mapper pose around the reference works at that heading (a wall or another
+            # robot ahead), the headings nearest to it are tried in turn.
+            turns = sorted(np.radians(np.arange(15.0, 360.0, 15.0)),
+                           key=lambda t: abs(math.remainder(float(t), 2 * math.pi)))  # fmt: skip
+            headings = [heading] + [math.remainder(heading + float(t), 2 * math.pi) for t in turns]
         scans: list[list[float]] = []
-        current = poses[mapper]
-        for _ in range(auto.scans_per_station):
-            best, best_score = None, -math.inf
-            for candidate in mapper_candidates(ref, geometry, band):
-                if not space.is_free(candidate[:2]) or not reachable[space.cell(candidate[:2])]:
-                    continue
-                spacing = 2 * config.robot.footprint_radius_m + 0.3
-                others = [p for n, p in poses.items() if n != mapper]
-                if any(np.hypot(*(candidate[:2] - p[:2])) < spacing for p in others):
-                    continue
-                if not geometry.mutual(ref, candidate, band):
-                    continue
-                legs = space.path(current[:2], candidate[:2])
-                if legs is None:
-                    continue
-                length = sum(float(np.linalg.norm(b - a)) for a, b in itertools.pairwise(legs))
-                score = coverage.gain(candidate) - 20.0 * length + rng.uniform(0, 1e-3)
-                if route.active:
-                    score = 0.05 * score - 100.0 * route.distance(candidate)
-                if score > best_score:
-                    best, best_score = candidate, score
-            if best is None:
+        for heading in headings:
+            turned = np.array([ref[0], ref[1], heading])
+            scans, current = _mapper_scans(turned, mapper, poses, auto.scans_per_station, space,
+                                           reachable, geometry, band, coverage, route, config,
+                                           rng)  # fmt: skip
+            if scans:
+                if abs(math.remainder(heading - ref[2], 2 * math.pi)) > 1e-6:
+                    poses[reference] = turned
+                    at = as_spec(turned)
+                ref = turned
                 break
-            coverage.add(best)
-            scans.append(as_spec(best))
-            current = best
         if not scans:
             if k == 0:
                 raise SensorError(
@@ -332,6 +319,45 @@ def plan_leapfrog(
         if mapper == reference:
             mapper = names[(names.index(reference) + 1) % len(names)]
     return steps
+
+
+def _mapper_scans(
+    ref: np.ndarray, mapper: str, poses: dict[str, np.ndarray], count: int, space: FreeSpace,
+    reachable: np.ndarray, geometry: BeaconGeometry, band: tuple[float, float],
+    coverage: CoverageModel, route: Route, config: Config, rng: np.random.Generator,
+) -> tuple[list[list[float]], np.ndarray]:  # fmt: skip
+    """Up to ``count`` scan poses for ``mapper`` around the reference at ``ref`` (each the best
+    of its candidates by coverage gain less path length, or by nearness to the route), and
+    where the mapper ends; the poses taken are added to the coverage model (none when no pose
+    is found)."""
+    scans: list[list[float]] = []
+    current = poses[mapper]
+    spacing = 2 * config.robot.footprint_radius_m + 0.3
+    others = [p for n, p in poses.items() if n != mapper]
+    for _ in range(count):
+        best, best_score = None, -math.inf
+        for candidate in mapper_candidates(ref, geometry, band):
+            if not space.is_free(candidate[:2]) or not reachable[space.cell(candidate[:2])]:
+                continue
+            if any(np.hypot(*(candidate[:2] - p[:2])) < spacing for p in others):
+                continue
+            if not geometry.mutual(ref, candidate, band):
+                continue
+            legs = space.path(current[:2], candidate[:2])
+            if legs is None:
+                continue
+            length = sum(float(np.linalg.norm(b - a)) for a, b in itertools.pairwise(legs))
+            score = coverage.gain(candidate) - 20.0 * length + rng.uniform(0, 1e-3)
+            if route.active:
+                score = 0.05 * score - 100.0 * route.distance(candidate)
+            if score > best_score:
+                best, best_score = candidate, score
+        if best is None:
+            break
+        coverage.add(best)
+        scans.append(as_spec(best))
+        current = best
+    return scans, current
 
 
 def grid_graph(cells_mask: np.ndarray, resolution_m: float) -> tuple[Any, np.ndarray]:

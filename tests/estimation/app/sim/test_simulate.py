@@ -278,3 +278,41 @@ def test_a_plan_in_which_no_beacon_can_be_seen_is_refused(tmp_path: Path) -> Non
     mission.write_text(mission.read_text().replace("200]", "20]").replace("40]", "220]"))
     result = run_simulation(mission, tmp_path / "out")
     assert result.steps == 1
+
+
+def test_a_route_heading_without_a_mapper_pose_turns_to_the_nearest_heading_that_has_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The route points the reference where no mapper pose sees its beacon (a wall or a robot
+    ahead): the plan goes on from the nearest heading that has one instead of ending after its
+    first step."""
+    from estimation.app.sim import planning
+
+    blocked = math.pi
+    monkeypatch.setattr(planning.Route, "heading", lambda self, pose: blocked)
+    candidates = planning.mapper_candidates
+    monkeypatch.setattr(
+        planning, "mapper_candidates",
+        lambda ref, *args: [] if abs(math.remainder(ref[2] - blocked, 2 * math.pi)) < 1e-6
+        else candidates(ref, *args),
+    )  # fmt: skip
+    spec = mission_from_mapping(
+        mission(
+            plan="auto",
+            robots=[{"name": "a", "start": [2, 4, 0]}, {"name": "b", "start": [5, 4, 180]}],
+            auto={"stations": 4, "scans_per_station": 1, "route": [[8.5, 6.5], [8.5, 1.5]]},
+        )
+    )
+    config = Config()
+    steps = planning.plan_leapfrog(
+        spec, room(), robot_free_space(room(), config), config, np.random.default_rng(0)
+    )
+    assert len(steps) >= 3
+    geometry = BeaconGeometry(config, RaycastScene(build_mesh(room())))
+    for step in steps[1:]:
+        assert step.at is not None
+        heading = math.radians(step.at[2])
+        assert 14.9 < abs(math.degrees(math.remainder(heading - blocked, 2 * math.pi))) < 180.0
+        pose = np.array([step.at[0], step.at[1], heading])
+        assert geometry.mutual(pose, np.array([*step.scans[0][:2], math.radians(step.scans[0][2])]),
+                               (1.5, 4.5))  # fmt: skip
