@@ -1,13 +1,13 @@
 """``coopmap bench stations``: per-station work of the station searches against mission length.
 
 A large building is generated (``--rooms``, up to 40), four robots leapfrog through it along a
-route that visits every room (a nearest-neighbour tour of the rooms' most open places, and back
-to the first room, for loop closures), planned on the true world (``plan: auto``, ``planner:
-truth``). The mission is simulated and processed by ``coopmap batch``; its report's
-``station_work`` gives, per station in mission order, the rays fused for its maps and the wall
-time of that fusion and of its searches. The benchmark fits the growth exponent of per-station
-work in the station index (work ∝ index^α, least squares on log–log over bins of stations; α
-near 0: flat) and reports the batch's total time per step.
+route that visits every room (a nearest-neighbour tour of the rooms' most open places) and comes
+back the same way to the first room (loop closures all along), planned on the true world
+(``plan: auto``, ``planner: truth``). The mission is simulated and processed by ``coopmap
+batch``; its report's ``station_work`` gives, per station in mission order, the rays fused for
+its maps and the wall time of that fusion and of its searches. The benchmark fits the growth
+exponent of per-station work in the station index (work ∝ index^α, least squares on log–log
+over bins of stations; α near 0: flat) and reports the batch's total time per step.
 """
 
 from __future__ import annotations
@@ -46,7 +46,8 @@ def growth_exponent(work: np.ndarray, bins: int = 8) -> float:
 
 def _route(site: Any, start: np.ndarray, rng: np.random.Generator) -> list[list[float]]:
     """The most open place of every room, in nearest-neighbour order from ``start``, then the
-    first again (the mission comes back through the building)."""
+    same places in reverse order back to the first (the mission comes back through the
+    building)."""
     places = [site.places(points, rng)[0] for _, points in site.rooms_by_floor()]
     tour: list[np.ndarray] = []
     here = start[:2]
@@ -54,7 +55,7 @@ def _route(site: Any, start: np.ndarray, rng: np.random.Generator) -> list[list[
         k = int(np.argmin([np.hypot(*(p - here)) for p in places]))
         here = places.pop(k)
         tour.append(here)
-    tour.append(tour[0])
+    tour += tour[-2::-1]
     return [[round(float(p[0]), 3), round(float(p[1]), 3)] for p in tour]
 
 
