@@ -33,13 +33,20 @@ def evaluate_missions(
         int | None, typer.Option("--rooms", help="Rooms per building, 3-15 (default: per seed).")
     ] = None,
     stations: Annotated[
-        int, typer.Option("--stations", help="Station budget of each mission (1-500).")
-    ] = 60,
+        int | None,
+        typer.Option("--stations", help="Station budget of each mission, 1-500 (default: 150)."),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Generate buildings (seeds SEED … SEED+N−1), fly a mission in each (simulate, batch,
     evaluate), print one row per building and the distribution; writes evaluation.json."""
-    from estimation.app.evaluation.missions import check_arguments, evaluate_missions
+    from estimation.app.evaluation.missions import (
+        DEFAULT_STATIONS,
+        check_arguments,
+        evaluate_missions,
+    )
+
+    stations = DEFAULT_STATIONS if stations is None else stations
 
     check_arguments(worlds, seed, robots, rooms, stations)
     option_config(config)  # a bad --config is one line before any work
