@@ -12,6 +12,7 @@ import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -167,8 +168,8 @@ def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:
         )
     t, qx, qy, qz, qw = values[:, 0], values[:, 4], values[:, 5], values[:, 6], values[:, 7]
 
-    def first(bad: np.ndarray) -> int | None:
-        where = np.flatnonzero(bad)
+    def first(bad: Any) -> int | None:
+        where = np.flatnonzero(np.asarray(bad))
         return int(where[0]) if len(where) else None
 
     if (row := first(~np.isfinite(values).all(axis=1))) is not None:
