@@ -58,6 +58,13 @@ class LiveOptions:
     view_port: int | None = None
 
 
+def _sigint_stops() -> None:
+    """In a child before exec: SIGINT at its default, since the supervisor stops its children
+    with it. A supervisor started in the background (nohup, ``&`` in a script) ignores SIGINT,
+    and its children would inherit that."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _command(*args: str) -> list[str]:
     return [sys.executable, "-m", "estimation.app.cli.main", *args]
 
@@ -119,7 +126,7 @@ class Supervisor:
         log = open(self.logs / f"{name}.log", "ab")  # noqa: SIM115 - the child holds it
         try:
             return subprocess.Popen(_command(*args), stdout=log, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)  # fmt: skip
+                                    stdin=subprocess.DEVNULL, preexec_fn=_sigint_stops)  # fmt: skip
         finally:
             log.close()
 

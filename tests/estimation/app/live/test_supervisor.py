@@ -51,6 +51,10 @@ def _commands_logged(out: Path) -> int:
     return path.read_bytes().count(b"\n") if path.exists() else 0
 
 
+def _sigint_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait(predicate: Any, timeout_s: float = 60.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not predicate():
@@ -256,7 +260,9 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     out = tmp_path / "interrupted"
     command = [sys.executable, "-m", "estimation.app.cli.main", "live", "essex_lab", "--out",
                str(out), "--port", str(free_port())]  # fmt: skip
-    first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C at a terminal: SIGINT at its default even when the suite runs in the background
+    first = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             preexec_fn=_sigint_default)  # fmt: skip
     try:
         _wait(lambda: _commands_logged(out) >= 3)
         first.send_signal(signal.SIGINT)
@@ -307,3 +313,24 @@ def _foxglove(port: int) -> Any:
         except OSError:
             assert time.monotonic() < deadline, "the live view never listened"
             time.sleep(0.2)
+
+
+def test_children_stop_on_sigint_even_when_the_supervisor_ignores_it() -> None:
+    """Started in the background (nohup, ``&`` in a script) the supervisor ignores SIGINT; the
+    base and robots it starts must not inherit that, since it stops them with SIGINT."""
+    import subprocess
+    import sys
+
+    from estimation.app.live.supervisor import _sigint_stops
+
+    probe = [sys.executable, "-c",
+             "import signal; print(signal.getsignal(signal.SIGINT) == signal.SIG_IGN)"]  # fmt: skip
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        inherited = subprocess.run(probe, capture_output=True, text=True, timeout=30).stdout
+        restored = subprocess.run(probe, capture_output=True, text=True, timeout=30,
+                                  preexec_fn=_sigint_stops).stdout  # fmt: skip
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert inherited.strip() == "True"
+    assert restored.strip() == "False"
