@@ -281,6 +281,10 @@ class LmsDecoder:
         """Parse one received chunk; returns how many scans it completed."""
         return self._add(self.decoder.feed(chunk, stamp))
 
+    def feed_chunks(self, chunks: list[tuple[float | None, bytes]]) -> int:
+        """Received chunks (stamp, bytes) at once: the same as feeding them one by one."""
+        return self._add(self.decoder.feed_chunks(chunks))
+
     def feed_stream(self, stream: CaptureStream) -> int:
         """A whole capture at once: the same as feeding its records one by one."""
         return self._add(self.decoder.feed_stream(stream))

@@ -78,6 +78,17 @@ class ScanDecoder:
             final=False,
         )
 
+    def feed_chunks(self, chunks: list[tuple[float | None, bytes]]) -> list[Scan]:
+        """Decode received chunks (receive stamp, bytes) in one call: the same as feeding them
+        one by one."""
+        if not chunks:
+            return []
+        stamps = np.array([np.nan if t is None else t for t, _ in chunks], dtype=np.float64)
+        ends = np.cumsum([len(data) for _, data in chunks], dtype=np.int64)
+        data = np.frombuffer(b"".join(data for _, data in chunks), dtype=np.uint8)
+        self._last_stamp = chunks[-1][0]
+        return self._decode(data, ends, stamps, ~np.isnan(stamps), final=False)
+
     def feed_stream(self, stream: CaptureStream) -> list[Scan]:
         """Decode a whole capture's stream: the same as feeding its records one by one."""
         if len(stream.ends) == 0:

@@ -195,8 +195,7 @@ def sweep_summary(config: Config, header: dict[str, Any], records: list[tuple[fl
     from sensors.scan3d.beacon import detect_beacons
 
     decoder = LmsDecoder(config.scanner.measuring_mode, scan_limits(config), header)
-    for stamp, data in records:
-        decoder.feed(stamp, data)
+    decoder.feed_chunks(records)
     scan, why = sweep_in(decoder.stream(), start_s + 0.2, end_s, config)
     if scan is None:
         return {"dwell_s": [start_s, end_s], "scans": decoder.decoded, "why": why}

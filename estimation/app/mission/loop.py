@@ -150,9 +150,10 @@ class MissionLoop:
         got = self.fleet.receive()
         for robot in self.robots:
             decoder, writer = self.decoders[robot], self.writers[robot]
-            for stamp, data in got.lms.get(robot, []):
+            chunks = got.lms.get(robot, [])
+            for stamp, data in chunks:
                 writer.write(stamp, data)
-                decoder.feed(stamp, data)
+            decoder.feed_chunks(chunks)
             times, poses = got.odometry.get(robot, (np.zeros(0), np.zeros((0, 3))))
             if len(times):
                 times, poses = as_logged(times, poses, decimals=6)

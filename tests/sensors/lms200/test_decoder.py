@@ -175,6 +175,15 @@ def assert_all_agree(path: Path, measuring_mode: int, limits: ScanLimits | None)
     got += streamed.close()
     assert_same_scans(got, expected)
     assert counters(streamed, reader) == want
+
+    # received in batches of chunks (the mission loop's and a robot agent's way), 7 at a time
+    reader = CaptureReader(path)
+    chunks = list(reader.chunks())
+    batched = ScanDecoder(measuring_mode, limits)
+    got = [s for k in range(0, len(chunks), 7) for s in batched.feed_chunks(chunks[k : k + 7])]
+    got += batched.feed_chunks([]) + batched.close()
+    assert_same_scans(got, expected)
+    assert counters(batched, reader) == want
     return expected
 
 
