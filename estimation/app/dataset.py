@@ -233,7 +233,7 @@ class Sweep:
 
     def view(self) -> View:
         """The sweep as the station searches see it."""
-        return View(self.robot, self.index, self.scan.points_scanner)
+        return View(self.robot, self.index, self.scan.points_scanner, self.dwell)
 
 
 @dataclass

@@ -72,6 +72,7 @@ class View:
     robot: str
     index: int
     points_scanner: np.ndarray  # (N, 3), scanner frame
+    dwell: int = -1  # the mission's dwell (event number) it was taken in; -1: not known
 
     @property
     def key(self) -> int:
@@ -408,6 +409,14 @@ class StationMaps:
         work.older_rays += sum(len(v.points_scanner) for v in new)
         work.older_seconds += time.perf_counter() - started
         return kept.band
+
+    def retain(self, keys: set[int]) -> None:
+        """Forget the maps of every station not in ``keys`` (a long mission's worker keeps
+        only the neighbourhood it searches in)."""
+        self._own = {k: v for k, v in self._own.items() if k in keys}
+        held = {k for m in self._own.values() for k in m.views}
+        held |= {k for m in self._older.values() for k in m.views}
+        self._reach = {i: kept for i, kept in self._reach.items() if kept[0].key in held}
 
     def searched(self, station: Station, seconds: float) -> None:
         """Count a search's wall time to the station searched."""

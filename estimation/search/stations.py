@@ -75,6 +75,7 @@ __all__ = [
     "loop_closures",
     "records_json",
     "relocalize",
+    "searched_with",
     "station_links",
 ]
 
@@ -344,9 +345,7 @@ def loop_closures(
         if only is not None and station.key not in only:
             continue
         here = estimate[station.key]
-        candidates = positions[: max(0, n - _MIN_AGE + 1)]
-        distance = np.sqrt(((candidates - here[:2]) ** 2).sum(axis=1))
-        near = np.flatnonzero(distance < _NEIGHBOURHOOD_M)
+        near, distance = _older_near(positions, n)
         if not len(near):
             continue
         older = [stations[k] for k in near]
@@ -391,6 +390,30 @@ def loop_closures(
             )
         )  # fmt: skip
     return events, records
+
+
+def _older_near(positions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The indices of the stations old enough for station ``n``'s loop closure and within
+    ``_NEIGHBOURHOOD_M`` of it (``positions``: every station's, in mission order), and the
+    distances of all the old enough ones."""
+    candidates = positions[: max(0, n - _MIN_AGE + 1)]
+    distance = np.sqrt(((candidates - positions[n]) ** 2).sum(axis=1))
+    return np.flatnonzero(distance < _NEIGHBOURHOOD_M), distance
+
+
+def searched_with(stations: list[Station], estimate: dict[int, np.ndarray], key: int,
+                  back: tuple[int, ...] = (1, 2, 3)) -> set[int]:  # fmt: skip
+    """The keys of the stations whose maps the searches of station ``key`` use
+    (:func:`station_links` ``back`` places before it, :func:`loop_closures`): itself, the
+    stations before it, and the older ones near it."""
+    stations = [s for s in stations if s.key in estimate]
+    n = next((k for k, s in enumerate(stations) if s.key == key), None)
+    if n is None:
+        return set()
+    positions = np.array([estimate[s.key][:2] for s in stations], dtype=np.float64).reshape(-1, 2)
+    near, _ = _older_near(positions, n)
+    used = {n, *(n - k for k in back if n >= k), *near.tolist()}
+    return {stations[k].key for k in used}
 
 
 #: The searches inside a mission, in order; the graph is optimized again after each stage that

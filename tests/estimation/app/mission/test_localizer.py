@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -221,3 +222,99 @@ def test_the_worker_exits_when_the_loop_process_is_killed() -> None:
         if parent.poll() is None:
             parent.kill()
             parent.wait()
+
+
+def _numbered(stations: list[Station]) -> list[Station]:
+    """The stations with each view numbered as a mission's sweep (its dwell)."""
+    return [
+        Station(s.robot, s.index, s.time_s,
+                tuple(dataclasses.replace(v, dwell=10 * n + k) for k, v in enumerate(s.views)))
+        for n, s in enumerate(stations)
+    ]  # fmt: skip
+
+
+def _sent(localizer: ConcurrentLocalizer, monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The requests an inline localizer runs, recorded."""
+    from estimation.app.mission import localizer as module
+
+    requests: list[Any] = []
+    run = module._localize_request
+
+    def recorded(request: Any) -> Localized:
+        requests.append(request)
+        return run(request)
+
+    monkeypatch.setattr(module, "_localize_request", recorded)
+    return requests
+
+
+def test_the_worker_is_sent_each_sweep_once_and_keeps_the_station_maps(
+    two_stations: Case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A second search that uses the same stations sends no sweep again and fuses no map again
+    (the estimate did not move); the answer is the one of a fresh search."""
+    from estimation.app.mission import localizer as module
+
+    stations, estimate, factors = two_stations
+    stations = _numbered(stations)
+    localizer = ConcurrentLocalizer(PARAMS, concurrent=False)
+    sent = _sent(localizer, monkeypatch)
+    try:
+        localizer.submit(stations, estimate, factors, K1, mission_s=41.0)
+        got = localizer.collect(42.0)
+        assert got is not None
+        assert sorted(sent[0].views) == [(0, "a"), (10, "a")]
+        assert sent[0].keep == frozenset({(0, "a"), (10, "a")})
+        assert module._HELD is not None
+        maps = module._HELD.maps
+        builds = {k: w.own_builds for k, w in maps.work.items()}
+        assert builds == {K0: 1, K1: 1}
+        localizer.submit(stations, estimate, factors, K1, mission_s=50.0)
+        second = localizer.collect(51.0)
+        assert second is not None
+        assert sent[1].views == {}  # the worker holds both sweeps
+        assert {k: w.own_builds for k, w in maps.work.items()} == builds  # kept, not fused
+        assert_same(second, localize_station(stations, estimate, factors, PARAMS, K1))
+    finally:
+        localizer.close()
+    assert module._HELD is None  # an inline localizer's sweeps go when it closes
+
+
+def test_the_worker_forgets_sweeps_its_searches_no_longer_use(
+    two_stations: Case, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimation.app.mission import localizer as module
+
+    stations, estimate, factors = two_stations
+    stations = _numbered(stations)
+    localizer = ConcurrentLocalizer(PARAMS, concurrent=False)
+    sent = _sent(localizer, monkeypatch)
+    try:
+        localizer.submit(stations, estimate, factors, K1, mission_s=1.0)
+        assert localizer.collect(2.0) is not None
+        # a0's searches use a0 alone (nothing before it): the worker lets a1's sweep go
+        localizer.submit(stations, estimate, factors, K0, mission_s=3.0)
+        assert localizer.collect(4.0) is not None
+        assert sent[1].keep == frozenset({(0, "a")})
+        assert sent[1].views == {}
+        assert module._HELD is not None
+        assert set(module._HELD.views) == {(0, "a")}
+        assert set(module._HELD.maps._own) <= {K0}
+        # a1 again: its sweep, no longer held, is sent again; a0's is not
+        localizer.submit(stations, estimate, factors, K1, mission_s=5.0)
+        got = localizer.collect(6.0)
+        assert got is not None
+        assert sorted(sent[2].views) == [(10, "a")]
+        assert_same(got, localize_station(stations, estimate, factors, PARAMS, K1))
+    finally:
+        localizer.close()
+
+
+def test_a_worker_that_lacks_a_sweep_says_so() -> None:
+    from estimation.app.mission.localizer import _localize_request, _Request
+
+    _, estimate, factors = blind_stations()
+    request = _Request("elsewhere", [("b", 0, 0.0, ((7, "b"),))], {}, frozenset({(7, "b")}),
+                       estimate, factors, PARAMS, pose_key("b", 0))  # fmt: skip
+    with pytest.raises(EstimationError, match=r"lacks the sweeps \[\(7, 'b'\)\]"):
+        _localize_request(request)
