@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -281,7 +281,7 @@ class LmsDecoder:
         """Parse one received chunk; returns how many scans it completed."""
         return self._add(self.decoder.feed(chunk, stamp))
 
-    def feed_chunks(self, chunks: list[tuple[float | None, bytes]]) -> int:
+    def feed_chunks(self, chunks: Sequence[tuple[float | None, bytes]]) -> int:
         """Received chunks (stamp, bytes) at once: the same as feeding them one by one."""
         return self._add(self.decoder.feed_chunks(chunks))
 

@@ -16,6 +16,7 @@ per scan; their arrays are views of the batch's.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -78,7 +79,7 @@ class ScanDecoder:
             final=False,
         )
 
-    def feed_chunks(self, chunks: list[tuple[float | None, bytes]]) -> list[Scan]:
+    def feed_chunks(self, chunks: Sequence[tuple[float | None, bytes]]) -> list[Scan]:
         """Decode received chunks (receive stamp, bytes) in one call: the same as feeding them
         one by one."""
         if not chunks:
