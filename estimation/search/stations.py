@@ -75,6 +75,7 @@ __all__ = [
     "loop_closures",
     "records_json",
     "relocalize",
+    "scan_links",
     "searched_with",
     "station_links",
 ]
@@ -242,6 +243,57 @@ def _near(pose: np.ndarray, predicted: np.ndarray) -> bool:
     )
 
 
+def _link(
+    station: Station,
+    previous: Station,
+    estimate: dict[int, np.ndarray],
+    maps: StationMaps,
+    ties: dict[int, set[int]],
+    params: StationParams,
+) -> tuple[list[Localize], SearchRecord] | None:
+    """``station``'s map searched against ``previous``'s around the predicted relative pose and
+    registered on their points: the ``Localize`` event when the answer is sound and consistent
+    with the prediction, and the record; None when there is nothing to search."""
+    search = params.station_search
+    local = maps.band(station, estimate, ties)
+    global_ = maps.band(previous, estimate, ties)
+    if local is None or global_ is None:
+        return None
+    predicted = se2.between(estimate[previous.key], estimate[station.key])
+    x0, x1, y0, y1 = global_.extent()
+    outside = math.hypot(max(x0 - predicted[0], 0.0, predicted[0] - x1),
+                         max(y0 - predicted[1], 0.0, predicted[1] - y1))  # fmt: skip
+    if outside > _LINK_WINDOW_M / 2 + _LINK_CONSISTENT_M:
+        return None  # no pose of the (moved) window could agree with the prediction
+    started = time.perf_counter()
+    try:
+        result, _ = _search_near(local, global_, search, predicted, _LINK_WINDOW_M, _LINK_YAW_RAD)
+    except EstimationError:
+        return None
+    overlap = overlap_fraction(local, global_, result.pose)
+    consistent = _near(result.pose, predicted) and overlap >= _MIN_OVERLAP
+    refined = None
+    if consistent or params.registration is not None:
+        # A search whose peak strays from the prediction (a band that matches poorly, the
+        # peak on the window's edge) leaves the registration to start from the prediction.
+        source = maps.cloud(station, estimate, ties)
+        refined = _refined(result, source, maps.cloud(previous, estimate, ties), params,
+                           None if consistent else predicted)  # fmt: skip
+        overlap = overlap_fraction(local, global_, refined.pose)
+    used = refined is not None and refined.sound and _near(refined.pose, predicted)
+    used = used and overlap >= _MIN_OVERLAP
+    events = [refined.event(station, previous, _LINK_RADIUS, result)] if used and refined else []
+    maps.searched(station, time.perf_counter() - started)
+    record = SearchRecord(
+        station=station.label, against=previous.label, band="ceiling", kind="link",
+        peak_ratio=float(result.peak_ratio),
+        dominant=result.is_dominant(search.dominance_ratio), used=used,
+        seconds=time.perf_counter() - started, time_s=station.time_s, overlap=overlap,
+        **(refined or _Refined(result.pose, None, None, False)).record_fields(result),
+    )  # fmt: skip
+    return events, record
+
+
 def station_links(
     stations: list[Station],
     estimate: dict[int, np.ndarray],
@@ -256,16 +308,11 @@ def station_links(
     ``Localize`` event. With ``only`` (station keys), just those stations are searched (the
     mission loop localizes each new station as it completes). ``maps``: the station maps kept
     from earlier stages (a new :class:`StationMaps` if None)."""
-    search = params.station_search
     stations = [s for s in stations if s.key in estimate]
     events: list[Localize] = []
     records: list[SearchRecord] = []
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
-
-    def station_map(station: Station) -> Band | None:
-        return maps.band(station, estimate, ties)
-
     pairs = [
         (stations[n - k], stations[n])
         for n in range(len(stations))
@@ -273,51 +320,46 @@ def station_links(
         if n >= k and (only is None or stations[n].key in only)
     ]
     for previous, station in pairs:
-        local = station_map(station)
-        global_ = station_map(previous)
-        if local is None or global_ is None:
+        found = _link(station, previous, estimate, maps, ties, params)
+        if found is not None:
+            events += found[0]
+            records.append(found[1])
+    return events, records
+
+
+def scan_links(
+    stations: list[Station],
+    estimate: dict[int, np.ndarray],
+    factors: list[FactorSpec],
+    params: StationParams,
+    only: set[int] | None = None,
+    maps: StationMaps | None = None,
+) -> tuple[list[Localize], list[SearchRecord]]:
+    """Link each scan of a station's dwells that no mutual observation ties to anything (the
+    beacon was not found, or its observation was gated out) to the station, as
+    :func:`station_links` links stations: the scan's own map searched against the station's
+    map around the pose odometry predicts, then registered on their points. Without it, the
+    scan's pose rests on the mapper's odometry alone, and its sweep goes into the map where
+    odometry put it (generated building 0: four such scans 10-14 cm and 2-5 degrees off).
+    Scans at a pose that is itself a station are left to the station links. ``only``,
+    ``maps`` as in :func:`station_links`."""
+    stations = [s for s in stations if s.key in estimate]
+    events: list[Localize] = []
+    records: list[SearchRecord] = []
+    maps = StationMaps(params) if maps is None else maps
+    ties = mutual_ties(factors)
+    keys = {s.key for s in stations}
+    for station in stations:
+        if only is not None and station.key not in only:
             continue
-        predicted = se2.between(estimate[previous.key], estimate[station.key])
-        x0, x1, y0, y1 = global_.extent()
-        outside = math.hypot(max(x0 - predicted[0], 0.0, predicted[0] - x1),
-                             max(y0 - predicted[1], 0.0, predicted[1] - y1))  # fmt: skip
-        if outside > _LINK_WINDOW_M / 2 + _LINK_CONSISTENT_M:
-            continue  # no pose of the (moved) window could agree with the prediction
-        started = time.perf_counter()
-        try:
-            result, _ = _search_near(
-                local, global_, search, predicted, _LINK_WINDOW_M, _LINK_YAW_RAD
-            )
-        except EstimationError:
-            continue
-        overlap = overlap_fraction(local, global_, result.pose)
-        consistent = _near(result.pose, predicted) and overlap >= _MIN_OVERLAP
-        refined = None
-        if consistent or params.registration is not None:
-            # A search whose peak strays from the prediction (a band that matches poorly, the
-            # peak on the window's edge) leaves the registration to start from the prediction.
-            source = maps.cloud(station, estimate, ties)
-            refined = _refined(result, source, maps.cloud(previous, estimate, ties), params,
-                               None if consistent else predicted)  # fmt: skip
-            overlap = overlap_fraction(local, global_, refined.pose)
-        used = (
-            refined is not None
-            and refined.sound
-            and _near(refined.pose, predicted)
-            and overlap >= _MIN_OVERLAP
-        )
-        if used and refined is not None:
-            events.append(refined.event(station, previous, _LINK_RADIUS, result))
-        maps.searched(station, time.perf_counter() - started)
-        records.append(
-            SearchRecord(
-                station=station.label, against=previous.label, band="ceiling", kind="link",
-                peak_ratio=float(result.peak_ratio),
-                dominant=result.is_dominant(search.dominance_ratio), used=used,
-                seconds=time.perf_counter() - started, time_s=station.time_s, overlap=overlap,
-                **(refined or _Refined(result.pose, None, None, False)).record_fields(result),
-            )
-        )  # fmt: skip
+        for view in station.views:
+            if view.key in ties or view.key in keys or view.key not in estimate:
+                continue
+            scan = Station(view.robot, view.index, station.time_s, (view,))
+            found = _link(scan, station, estimate, maps, ties, params)
+            if found is not None:
+                events += found[0]
+                records.append(found[1])
     return events, records
 
 
@@ -422,6 +464,7 @@ def searched_with(stations: list[Station], estimate: dict[int, np.ndarray], key:
 SEARCH_STAGES = (
     ("links to the previous station", station_links),
     ("links to earlier stations", functools.partial(station_links, back=(2, 3))),
+    ("links of unobserved scans", scan_links),
     ("loop closures", loop_closures),
 )
 

@@ -30,6 +30,7 @@ from estimation.search.stations import (
     StationParams,
     View,
     loop_closures,
+    scan_links,
     searched_with,
     station_links,
 )
@@ -67,6 +68,9 @@ def localize_station(
         )
         events += found
         records += done
+    found, done = scan_links(stations, estimate, factors, params, only={key}, maps=maps)
+    events += found
+    records += done
     found, done = loop_closures(stations, estimate, factors, params, only={key}, maps=maps)
     label = next((s.label for s in stations if s.key == key), str(key))
     return Localized(label, events + found, records + done, time.perf_counter() - started)

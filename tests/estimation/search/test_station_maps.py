@@ -24,7 +24,7 @@ from estimation.search.station_maps import (
     tied_views,
 )
 from estimation.search.station_maps import _moved_m as moved_m
-from estimation.search.stations import relocalize, station_links
+from estimation.search.stations import relocalize, scan_links, station_links
 from mapping.band import Band
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
@@ -193,6 +193,34 @@ def test_a_link_is_registered_on_the_stations_points_and_carries_their_covarianc
     assert record.searched is not None
     assert record.inliers > 0.8
     assert tuple(record.pose) == pytest.approx(link.pose)
+
+
+def test_a_scan_without_a_mutual_observation_is_linked_to_its_station(mission) -> None:
+    """The mapper's scan a1 at station b1 whose beacon was missed (no mutual factor), believed
+    9 cm and 1.5° off by odometry: linked to the station on their points, within a centimetre
+    and 0.1°. Scans tied by a mutual observation, and scans at a station's own pose, get no
+    scan link."""
+    stations, factors = mission
+    params = dataclasses.replace(EXACT, registration=RegistrationParams())
+    a1 = pose_key("a", 1)
+    untied = [f for f in factors if a1 not in f.keys]
+    estimate = dict(TRUTH)
+    estimate[a1] = se2.compose(TRUTH[a1], np.array([0.06, 0.07, np.radians(1.5)]))
+    events, records = scan_links(stations, estimate, untied, params)
+    assert [(r.station, r.against, r.kind) for r in records] == [("a1", "b1", "link")]
+    (event,) = events
+    assert (event.robot, event.index, event.reference) == ("a", 1, ("b", 1))
+    truth = se2.between(TRUTH[pose_key("b", 1)], TRUTH[a1])
+    assert event.pose is not None
+    assert np.hypot(*(np.array(event.pose[:2]) - truth[:2])) < 0.01
+    assert abs(event.pose[2] - truth[2]) < np.radians(0.1)
+    assert records[0].used
+    # every scan tied: nothing to link; only the station asked for is looked at
+    assert scan_links(stations, estimate, factors, params) == ([], [])
+    assert scan_links(stations, estimate, untied, params, only={pose_key("a", 0)}) == ([], [])
+    # a scan at a pose that is also a station's is the station links' business
+    as_station = [*stations, Station("a", 1, 200.0, (stations[1].views[1],))]
+    assert scan_links(as_station, estimate, untied, params) == ([], [])
 
 
 def test_a_relocalization_is_registered_on_the_mapped_points(mission) -> None:

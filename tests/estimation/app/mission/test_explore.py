@@ -327,7 +327,33 @@ def test_a_turn_no_pivot_can_tie_is_taken_untied(view: MapView) -> None:
     assert not untied.tied
     assert untied.parts == ((untied.heading, None),)
     assert untied.pivots == 0
-    assert untieable.heading(view, reference, mapper, [reference], None, look_first=True) is None
+    # Looking first changes nothing here: the untied heading has a mapper pose
+    looked = untieable.heading(view, reference, mapper, [reference], None, look_first=True)
+    assert looked is not None
+    assert (looked.heading, looked.tied) == (untied.heading, False)
+
+
+def test_an_untied_turn_wins_only_by_more_than_its_cost(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimation.app.mission import explore
+
+    reference, mapper = np.array([3.0, 2.0, 0.0]), np.array([1.0, 1.0, 0.0])
+    tied = Explorer(CONFIG, (1.5, 3.5)).heading(view, reference, mapper, [reference], None)
+    assert tied is not None
+    assert tied.tied
+    monkeypatch.setattr(explore, "_UNTIED_COST", 1e9)
+    again = Explorer(CONFIG, (1.5, 3.5)).heading(view, reference, mapper, [reference], None)
+    assert again is not None
+    assert (again.heading, again.tied, again.pivots) == (tied.heading, True, tied.pivots)
+    # Free to take: the best-scored heading with a mapper pose, untied
+    monkeypatch.setattr(explore, "_UNTIED_COST", -1.0)
+    free = Explorer(CONFIG, (1.5, 3.5)).heading(view, reference, mapper, [reference], None)
+    assert free is not None
+    assert not free.tied
+    assert free.parts == ((free.heading, None),)
+    if tied.pivots == 0:
+        assert free.heading == tied.heading  # the tied plan was the best heading already
 
 
 def test_lines_of_sight_ignore_the_robots_where_they_stand_now_not_where_they_stood() -> None:

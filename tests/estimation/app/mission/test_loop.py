@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+from estimation.app.dataset import mapping_sweeps, stations
 from estimation.app.mission.fleet import SimulatedFleet
 from estimation.app.mission.loop import MissionLoop
 from estimation.app.pipeline import prepare, run_batch, unobserved_stations
@@ -77,10 +78,13 @@ def test_the_loop_records_a_dataset_that_batch_reproduces(
     prepared = prepare(dataset, None, None)
     factors = [f for f in out.factors if f.kind != "mutual"]
     listed = unobserved_stations(prepared, factors)
-    assert [s["station"] for s in listed] == ["a0", "b3"]
+    every = stations(prepared.dataset, mapping_sweeps(prepared.dataset, prepared.sweeps))
+    # the two stations of the plan, and any pose a reference stood at for a pivot's dwell
+    assert (every[0].label, every[-1].label) == ("a0", "b3")
+    assert [s["station"] for s in listed] == [s.label for s in every]
     searched = [s["search_factors"] for s in listed]
-    assert searched == [sum(1 for f in factors if f.kind == "global" and key in f.keys)
-                        for key in (pose_key("a", 0), pose_key("b", 3))]  # fmt: skip
+    assert searched == [sum(1 for f in factors if f.kind == "global" and s.key in f.keys)
+                        for s in every]  # fmt: skip
 
 
 def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) -> None:
@@ -102,8 +106,9 @@ def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) 
     assert loop["refused_goals"] == []
     assert len(loop["stations"]) == 2
     mission = yaml.safe_load((dataset / "mission.yaml").read_text(encoding="utf-8"))
-    assert len(mission["plan"]) == 2  # the plan as flown, explicit
-    assert result.steps == 2
+    # the plan as flown, explicit: each station, and each pivot that tied a turn
+    assert len(mission["plan"]) == 2 + loop["pivots"]
+    assert result.steps == 2 + loop["pivots"]
 
 
 def test_the_loops_event_stream_is_the_one_batch_reads(tmp_path: Path) -> None:
