@@ -22,7 +22,6 @@ from estimation.app.sim.simulate import (
     run_simulation,
 )
 from estimation.posegraph.events import Move, Observe, Start
-from estimation.posegraph.keys import pose_key
 from sensors.sim.mission import MissionError, load_mission
 from sensors.sim.world import load_world
 from sensors.trajio import read_tum
