@@ -68,12 +68,6 @@ _SAME_TARGET_M = 1.5
 #: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
 _MIN_UNKNOWN_M2 = 4.0
-#: How far a sweep makes the floor known (the planner's view range on the estimated map): the
-#: scanner sits 0.45 m up and its mirror is blind within about ±5° of the horizontal, so a
-#: sweep knows 85–90 % of the floor in its ±50° wedge out to 3 m, about 45 % at 3–4 m and
-#: 10 % at 4–5 m (one sweep fused alone, generated building 0). Modelling the 7 m the sweep
-#: sees walls at made poses that look at a room from afar seem to cover it.
-_FLOOR_VIEW_M = 3.5
 #: Unknown floor added around the known map, m.
 _BORDER_M = 1.0
 #: A turn is tied in parts of at most this much (a pivot pose must lie 15–45° off the heading
@@ -137,7 +131,7 @@ class MapView:
         # furniture, never resolved, would keep the pair busy where it already is).
         self.unexplored = large_unknown(self.floor, _MIN_UNKNOWN_M2)
         self.coverage = CoverageModel(
-            self.space, ~self.floor.obstacle, ~self.unexplored, self.floor.obstacle, _FLOOR_VIEW_M
+            self.space, ~self.floor.obstacle, ~self.unexplored, self.floor.obstacle
         )
         self.geometry = BeaconGeometry(config, line_clear=self._clear)
         self._graph: tuple[object, np.ndarray] | None = None

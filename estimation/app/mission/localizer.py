@@ -1,11 +1,13 @@
 """Global localization of each new station while the mission goes on (paper §2.3).
 
 When a station's local map is complete, its searches — against the station before it, the two
-and three before it, and the older stations near it (``estimation.search.stations``) — run in a
-worker process while the robots build the next local map; the ``Localize`` events they find
-enter the loop's graph at the next dwell. The worker is spawned (not forked: the loop's
+and three before it, the links of its scans that no mutual observation ties, and the older
+stations near it (``estimation.search.stations``) — run in a worker process while the robots
+build the next local map; the ``Localize`` events they find enter the loop's graph at the next
+dwell. Between stations the worker keeps the sweeps and station maps of the neighbourhood it
+searches and is sent only the sweeps it lacks. The worker is spawned (not forked: the loop's
 process holds GTSAM and numba thread pools) and sees only explicit values: the stations with
-their sweeps, the estimate and the factors at submission.
+the sweeps it lacks, the estimate and the factors at submission.
 """
 
 from __future__ import annotations
