@@ -308,6 +308,27 @@ class Explorer:
             self.retried, self.given_up = list(self.given_up), []
         return None
 
+    def abandon(self, view: MapView, from_xy: list[np.ndarray]) -> bool:
+        """Exploration stalled: give up the target and say whether a reachable frontier is left
+        that was never given up (the one :meth:`frontier` will then pick)."""
+        if self.target is not None:
+            self.given_up.append(self.target.centroid.copy())
+            self.target = None
+        starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
+        if not starts:
+            return False
+        reach = view.distances_from(starts)
+        tried = [*self.given_up, *self.retried]
+        for frontier in frontiers(
+            view.floor, view.space, robot_radius_m=view.radius_m,
+            min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
+        ):  # fmt: skip
+            if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in tried):
+                continue
+            if np.isfinite(reach[frontier.cells[:, 0], frontier.cells[:, 1]]).any():
+                return True
+        return False
+
     def progress(self, frontier: Frontier | None, distance_m: float, view: MapView) -> None:
         """Track the target frontier across stations; give it up when it stops yielding: the
         robots came no nearer (by ``_PROGRESS_M``) and the known floor around it grew by less

@@ -60,8 +60,9 @@ from sensors.trajio import as_logged, write_tum
 __all__ = ["LoopResult", "MissionLoop"]
 
 Progress = Callable[[str], None]
-#: Exploration ends when the known floor grew by less than this (m²) over this many stations:
-#: what frontiers are left cannot be resolved from the floor the robots can reach.
+#: Exploration stalls when the known floor grew by less than this (m²) over this many stations;
+#: it goes on at a frontier never tried if one is left, and ends if none is: what frontiers are
+#: left cannot be resolved from the floor the robots can reach.
 _STALL_M2, _STALL_STATIONS = 2.0, 10
 
 
@@ -139,6 +140,7 @@ class MissionLoop:
         self.pivots = 0  # pivot poses driven to, to tie the reference's turns
         self.untied: dict[str, str] = {}  # stations whose turn no mutual observation ties: why
         self.given_up: list[list[float]] = []
+        self.abandoned = 0  # stalls after which an untried frontier was taken up
         self.retried_frontiers: list[list[float]] = []
         self.changed: list[str] = []
         self.trace: list[dict[str, Any]] = []  # per station of an exploration
@@ -373,9 +375,17 @@ class MissionLoop:
                 if len(known) > _STALL_STATIONS and (
                     known[-1] - known[-1 - _STALL_STATIONS] < _STALL_M2
                 ):
-                    reason = (f"exploration stalled: the known floor grew by less than "
-                              f"{_STALL_M2:g} m² over {_STALL_STATIONS} stations")  # fmt: skip
-                    break
+                    here = [self.pose(mapper)[:2], self.pose(reference)[:2]]
+                    if explorer.abandon(view, here):
+                        # Stalled on the frontiers tried lately, while one never tried is
+                        # left: go there (generated building 2 stopped with half a hall
+                        # unexplored after three hopeless doorways).
+                        self.abandoned += 1
+                        known = known[-1:]
+                    else:
+                        reason = (f"exploration stalled: the known floor grew by less than "
+                                  f"{_STALL_M2:g} m² over {_STALL_STATIONS} stations")  # fmt: skip
+                        break
             reference, mapper = mapper, names[(names.index(mapper) + 1) % len(names)]
             if mapper == reference:
                 mapper = names[(names.index(reference) + 1) % len(names)]
@@ -528,6 +538,7 @@ class MissionLoop:
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "given_up_frontiers": self.given_up,
             "retried_frontiers": self.retried_frontiers,
+            "stalls_resumed": self.abandoned,
             "stations": self.trace,
             **{k: v for k, v in fleet_counts.items() if k != "refused_goals"},
         }  # fmt: skip

@@ -233,6 +233,29 @@ def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
     assert explorer.target is None
 
 
+def test_a_stalled_exploration_goes_on_only_at_a_frontier_never_tried(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def cells_at(x: float, y: float) -> Frontier:
+        row, col = view.space.cell(np.array([x, y]))
+        cells = np.array([[row, col + k] for k in range(5)], dtype=np.int64)
+        return Frontier(cells, np.array([x, y]), 5)
+
+    near, far = cells_at(1.5, 1.0), cells_at(5.0, 3.0)
+    blocked = Frontier(np.array([[0, 0]] * 5, dtype=np.int64), np.array([5.5, 3.0]), 5)
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, far, blocked])
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    robots = [np.array([1.0, 1.0])]
+    explorer.progress(near, 0.5, view)
+    assert explorer.abandon(view, robots)  # the target is given up; far was never tried
+    assert explorer.target is None
+    np.testing.assert_allclose(explorer.given_up, [near.centroid_xy])
+    assert explorer.frontier(view, robots) is far
+    explorer.retried.append(far.centroid_xy.copy())  # tried once more already
+    assert not explorer.abandon(view, robots)  # only the unreachable one is left untried
+    assert not explorer.abandon(view, [np.array([-50.0, -50.0])])  # nowhere to start from
+
+
 def test_the_pair_keeps_its_target_frontier_while_it_is_reachable_and_not_given_up(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
