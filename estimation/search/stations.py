@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -309,8 +310,6 @@ def station_links(
     mission loop localizes each new station as it completes). ``maps``: the station maps kept
     from earlier stages (a new :class:`StationMaps` if None)."""
     stations = [s for s in stations if s.key in estimate]
-    events: list[Localize] = []
-    records: list[SearchRecord] = []
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
     pairs = [
@@ -319,6 +318,19 @@ def station_links(
         for k in back
         if n >= k and (only is None or stations[n].key in only)
     ]
+    return _links(pairs, estimate, maps, ties, params)
+
+
+def _links(
+    pairs: Iterable[tuple[Station, Station]],
+    estimate: dict[int, np.ndarray],
+    maps: StationMaps,
+    ties: dict[int, set[int]],
+    params: StationParams,
+) -> tuple[list[Localize], list[SearchRecord]]:
+    """:func:`_link` of each (earlier station, station) pair: the events and the records."""
+    events: list[Localize] = []
+    records: list[SearchRecord] = []
     for previous, station in pairs:
         found = _link(station, previous, estimate, maps, ties, params)
         if found is not None:
@@ -344,23 +356,17 @@ def scan_links(
     Scans at a pose that is itself a station are left to the station links. ``only``,
     ``maps`` as in :func:`station_links`."""
     stations = [s for s in stations if s.key in estimate]
-    events: list[Localize] = []
-    records: list[SearchRecord] = []
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
     keys = {s.key for s in stations}
-    for station in stations:
-        if only is not None and station.key not in only:
-            continue
-        for view in station.views:
-            if view.key in ties or view.key in keys or view.key not in estimate:
-                continue
-            scan = Station(view.robot, view.index, station.time_s, (view,))
-            found = _link(scan, station, estimate, maps, ties, params)
-            if found is not None:
-                events += found[0]
-                records.append(found[1])
-    return events, records
+    pairs = [
+        (station, Station(view.robot, view.index, station.time_s, (view,)))
+        for station in stations
+        if only is None or station.key in only
+        for view in station.views
+        if view.key not in ties and view.key not in keys and view.key in estimate
+    ]
+    return _links(pairs, estimate, maps, ties, params)
 
 
 def loop_closures(

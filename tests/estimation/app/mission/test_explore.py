@@ -162,6 +162,13 @@ def frontier_at(x: float, y: float) -> Frontier:
     return Frontier(np.zeros((5, 2), dtype=np.int64), np.array([x, y]), 5)
 
 
+def cells_at(view: MapView, x: float, y: float) -> Frontier:
+    """A frontier of five cells in a row from the cell at (x, y)."""
+    row, col = view.space.cell(np.array([x, y]))
+    cells = np.array([[row, col + k] for k in range(5)], dtype=np.int64)
+    return Frontier(cells, np.array([x, y]), 5)
+
+
 def test_a_frontier_that_does_not_come_closer_is_given_up_and_tried_once_more(
     view: MapView,
 ) -> None:
@@ -236,12 +243,7 @@ def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
 def test_a_stalled_exploration_goes_on_only_at_a_frontier_never_tried(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    def cells_at(x: float, y: float) -> Frontier:
-        row, col = view.space.cell(np.array([x, y]))
-        cells = np.array([[row, col + k] for k in range(5)], dtype=np.int64)
-        return Frontier(cells, np.array([x, y]), 5)
-
-    near, far = cells_at(1.5, 1.0), cells_at(5.0, 3.0)
+    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
     blocked = Frontier(np.array([[0, 0]] * 5, dtype=np.int64), np.array([5.5, 3.0]), 5)
     monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, far, blocked])
     explorer = Explorer(CONFIG, (1.5, 4.5))
@@ -259,19 +261,14 @@ def test_a_stalled_exploration_goes_on_only_at_a_frontier_never_tried(
 def test_the_pair_keeps_its_target_frontier_while_it_is_reachable_and_not_given_up(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    def cells_at(x: float, y: float) -> Frontier:
-        row, col = view.space.cell(np.array([x, y]))
-        cells = np.array([[row, col + k] for k in range(5)], dtype=np.int64)
-        return Frontier(cells, np.array([x, y]), 5)
-
-    near, far = cells_at(1.5, 1.0), cells_at(5.0, 3.0)
+    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
     monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [far, near])
     explorer = Explorer(CONFIG, (1.5, 4.5))
     robots = [np.array([1.0, 1.0])]
     assert explorer.frontier(view, robots) is near  # no target yet: the nearest
     explorer.progress(far, 4.5, view)  # the pair works on the far one
     assert explorer.frontier(view, robots) is far
-    moved = cells_at(4.4, 3.3)  # the target receded as the map grew: still the target
+    moved = cells_at(view, 4.4, 3.3)  # the target receded as the map grew: still the target
     monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, moved])
     assert explorer.frontier(view, robots) is moved
     explorer.given_up.append(moved.centroid_xy.copy())  # given up: the nearest again
