@@ -347,14 +347,10 @@ def scan_links(
     only: set[int] | None = None,
     maps: StationMaps | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
-    """Link each scan of a station's dwells that no mutual observation ties to anything (the
-    beacon was not found, or its observation was gated out) to the station, as
-    :func:`station_links` links stations: the scan's own map searched against the station's
-    map around the pose odometry predicts, then registered on their points. Without it, the
-    scan's pose rests on the mapper's odometry alone, and its sweep goes into the map where
-    odometry put it (generated building 0: four such scans 10-14 cm and 2-5 degrees off).
-    Scans at a pose that is itself a station are left to the station links. ``only``,
-    ``maps`` as in :func:`station_links`."""
+    """Link each scan of a station's dwells that no mutual observation ties (beacon missed,
+    observation gated out) to the station as :func:`station_links` links stations, so that it
+    rests on more than the mapper's odometry (design §7). Scans at a pose that is itself a
+    station are left to the station links; ``only``, ``maps`` as there."""
     stations = [s for s in stations if s.key in estimate]
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
