@@ -64,6 +64,8 @@ _COMPATIBLE = 0.5
 _THIN = 3
 #: Fewer correspondences than this: no registration.
 _MIN_POINTS = 50
+#: A registration that ends farther than this many ``max_distance_m`` from its seed is refused.
+_MAX_SLIDE = 2.0
 #: Converged when an iteration moves the pose by less than this (m, and rad × 1 m).
 _STEP_TOLERANCE = 1e-4
 
@@ -269,9 +271,18 @@ class Registration:
     iterations: int
     converged: bool
     inlier_points: int = 0  # source points within ``inlier_m`` of a target
+    moved_m: float = 0.0  # how far (in the plane) the pose ended from its seed
 
     def accepted(self, params: RegistrationParams) -> bool:
-        return self.converged and self.inliers >= params.min_inliers
+        """Converged, with enough inliers, and not slid away from its seed: the seed is good to
+        ``max_distance_m``, and a pose that ends more than twice that far from it slid along a
+        direction the points hardly constrain (a corridor's axis: a scan link slid 66 cm from
+        its search's pose and put a pivot 22 cm off) instead of settling on the overlap."""
+        return (
+            self.converged
+            and self.inliers >= params.min_inliers
+            and self.moved_m <= _MAX_SLIDE * params.max_distance_m
+        )
 
 
 def register(
@@ -349,7 +360,9 @@ def register(
     floor = np.diag([params.min_sigma_m**2, params.min_sigma_m**2, params.min_sigma_rad**2])
     covariance = _floored(covariance, floor)
     rms = math.sqrt(float(np.mean(residuals**2)))
-    return Registration(pose, covariance, inliers, rms, iterations, converged, len(residuals))
+    moved = math.hypot(pose[0] - seed[0], pose[1] - seed[1])
+    return Registration(pose, covariance, inliers, rms, iterations, converged, len(residuals),
+                        moved)  # fmt: skip
 
 
 def _profiled(

@@ -63,6 +63,8 @@ def test_registration_recovers_the_relative_pose_from_a_seed_decimetres_off() ->
     assert abs(math.remainder(found.pose[2] - truth[2], 2 * math.pi)) < math.radians(0.1)
     assert found.inliers > 0.85
     assert found.rms_m < 0.01
+    seed = truth + np.array([0.25, -0.2, math.radians(4.0)])
+    assert found.moved_m == pytest.approx(math.dist(found.pose[:2], seed[:2]))
     sigmas = np.sqrt(np.diag(found.covariance))
     assert sigmas[0] >= PARAMS.min_sigma_m * 0.999
     assert sigmas[2] >= PARAMS.min_sigma_rad * 0.999
@@ -245,3 +247,17 @@ def test_gauss_newton_kernel_matches_the_formula() -> None:
     np.testing.assert_allclose(weight, w, atol=1e-12)
     np.testing.assert_allclose(H, J.T @ (J * w[:, None]), atol=1e-10)
     np.testing.assert_allclose(g, J.T @ (w * r), atol=1e-10)
+
+
+def test_a_registration_that_slid_far_from_its_seed_is_not_accepted() -> None:
+    """Past twice the reach its seed is good to, a converged registration with every point an
+    inlier is still refused: it slid along what the points do not constrain."""
+    from estimation.search.registration import Registration
+
+    def ended(moved_m: float) -> Registration:
+        return Registration(np.zeros(3), np.eye(3), 1.0, 0.001, 5, True, 1000, moved_m)
+
+    assert ended(0.0).accepted(PARAMS)
+    assert ended(2 * PARAMS.max_distance_m).accepted(PARAMS)
+    assert not ended(2 * PARAMS.max_distance_m + 0.01).accepted(PARAMS)
+    assert not Registration(np.zeros(3), np.eye(3), 1.0, 0.001, 40, False, 1000).accepted(PARAMS)
