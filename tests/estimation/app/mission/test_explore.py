@@ -169,7 +169,7 @@ def cells_at(view: MapView, x: float, y: float) -> Frontier:
     return Frontier(cells, np.array([x, y]), 5)
 
 
-def test_a_frontier_that_does_not_come_closer_is_given_up_and_tried_once_more(
+def test_a_frontier_that_does_not_come_closer_is_given_up_and_offered_when_it_is_all_left(
     view: MapView,
 ) -> None:
     explorer = Explorer(CONFIG, (1.5, 4.5))
@@ -200,8 +200,15 @@ def test_a_frontier_that_does_not_come_closer_is_given_up_and_tried_once_more(
     assert explorer.given_up == []
     assert len(explorer.retried) == 1
     give_up()
-    assert explorer.frontier(view, robots) is None
     assert len(explorer.given_up) == 1
+    # Given up twice it is still offered (the loop's stall rule ends the exploring), and it
+    # stays given up
+    third = explorer.frontier(view, robots)
+    assert third is not None
+    np.testing.assert_allclose(third.centroid_xy, found.centroid_xy)
+    assert len(explorer.given_up) == 1
+    assert len(explorer.retried) == 1
+    assert explorer.frontier(view, [np.array([-50.0, -50.0])]) is None  # from nowhere
 
 
 def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
