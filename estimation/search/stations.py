@@ -251,10 +251,10 @@ def _link(
     maps: StationMaps,
     ties: dict[int, set[int]],
     params: StationParams,
-) -> tuple[list[Localize], SearchRecord] | None:
+) -> tuple[Localize | None, SearchRecord] | None:
     """``station``'s map searched against ``previous``'s around the predicted relative pose and
     registered on their points: the ``Localize`` event when the answer is sound and consistent
-    with the prediction, and the record; None when there is nothing to search."""
+    with the prediction (else None), and the record; None when there is nothing to search."""
     search = params.station_search
     local = maps.band(station, estimate, ties)
     global_ = maps.band(previous, estimate, ties)
@@ -283,7 +283,7 @@ def _link(
         overlap = overlap_fraction(local, global_, refined.pose)
     used = refined is not None and refined.sound and _near(refined.pose, predicted)
     used = used and overlap >= _MIN_OVERLAP
-    events = [refined.event(station, previous, _LINK_RADIUS, result)] if used and refined else []
+    event = refined.event(station, previous, _LINK_RADIUS, result) if used and refined else None
     maps.searched(station, time.perf_counter() - started)
     record = SearchRecord(
         station=station.label, against=previous.label, band="ceiling", kind="link",
@@ -292,7 +292,7 @@ def _link(
         seconds=time.perf_counter() - started, time_s=station.time_s, overlap=overlap,
         **(refined or _Refined(result.pose, None, None, False)).record_fields(result),
     )  # fmt: skip
-    return events, record
+    return event, record
 
 
 def station_links(
@@ -329,14 +329,8 @@ def _links(
     params: StationParams,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """:func:`_link` of each (earlier station, station) pair: the events and the records."""
-    events: list[Localize] = []
-    records: list[SearchRecord] = []
-    for previous, station in pairs:
-        found = _link(station, previous, estimate, maps, ties, params)
-        if found is not None:
-            events += found[0]
-            records.append(found[1])
-    return events, records
+    found = [f for p, s in pairs if (f := _link(s, p, estimate, maps, ties, params)) is not None]
+    return [e for e, _ in found if e is not None], [r for _, r in found]
 
 
 def scan_links(

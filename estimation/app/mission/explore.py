@@ -239,6 +239,29 @@ class _Target:
     stale: int = 0
 
 
+def _reachable_frontiers(view: MapView, from_xy: list[np.ndarray]) -> list[tuple[Frontier, float]]:
+    """The frontiers reachable from any of ``from_xy``, each with its path distance (m)."""
+    starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
+    if not starts:
+        return []
+    reach = view.distances_from(starts)
+    found = frontiers(
+        view.floor, view.space, robot_radius_m=view.radius_m,
+        min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
+    )  # fmt: skip
+    out = []
+    for frontier in found:
+        d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
+        if np.isfinite(d):
+            out.append((frontier, d))
+    return out
+
+
+def _among(frontier: Frontier, centroids: list[np.ndarray]) -> bool:
+    """The frontier is one of those with these centroids (within 1 m: frontiers move)."""
+    return any(math.dist(frontier.centroid_xy, c) < 1.0 for c in centroids)
+
+
 def _known_near(view: MapView, xy: np.ndarray) -> float:
     """Known floor (m²) within ``_PROGRESS_RADIUS_M`` of ``xy``."""
     floor = view.floor
@@ -281,23 +304,12 @@ class Explorer:
         from one station to the next (generated building 0: 8 stations zigzagging over 3 m).
         Never ending on given-up frontiers matters too: building 0 at 150 stations ended after
         29, with the doorway to the rest of the building given up twice."""
-        starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
-        if not starts:
-            return None
-        reach = view.distances_from(starts)
-        found = frontiers(
-            view.floor, view.space, robot_radius_m=view.radius_m,
-            min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
-        )  # fmt: skip
         target = self.target
         best, best_m = None, math.inf
         kept, kept_m = None, math.inf
         given_best, given_m = None, math.inf
-        for frontier in found:
-            d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
-            if not np.isfinite(d):
-                continue
-            if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in self.given_up):
+        for frontier, d in _reachable_frontiers(view, from_xy):
+            if _among(frontier, self.given_up):
                 if d < given_m:
                     given_best, given_m = frontier, d
                 continue
@@ -323,20 +335,8 @@ class Explorer:
         if self.target is not None:
             self.given_up.append(self.target.centroid.copy())
             self.target = None
-        starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
-        if not starts:
-            return False
-        reach = view.distances_from(starts)
         tried = [*self.given_up, *self.retried]
-        for frontier in frontiers(
-            view.floor, view.space, robot_radius_m=view.radius_m,
-            min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
-        ):  # fmt: skip
-            if any(math.dist(frontier.centroid_xy, g) < 1.0 for g in tried):
-                continue
-            if np.isfinite(reach[frontier.cells[:, 0], frontier.cells[:, 1]]).any():
-                return True
-        return False
+        return any(not _among(f, tried) for f, _ in _reachable_frontiers(view, from_xy))
 
     def progress(self, frontier: Frontier | None, distance_m: float, view: MapView) -> None:
         """Track the target frontier across stations; give it up when it stops yielding: the

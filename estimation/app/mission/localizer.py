@@ -208,7 +208,7 @@ class ConcurrentLocalizer:
                 else:
                     token = (view.dwell, view.robot)
                 tokens.append(token)
-                if token not in self._held or view.dwell < 0:
+                if token not in self._held:
                     views[token] = view
             skeleton.append((station.robot, station.index, station.time_s, tuple(tokens)))
         keep = frozenset(t for _, _, _, tokens in skeleton for t in tokens)

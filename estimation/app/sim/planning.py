@@ -53,13 +53,12 @@ class CoverageModel:
     target: np.ndarray  # (H, W) cells worth covering (reachable floor)
     covered: np.ndarray  # (H, W)
     opaque: np.ndarray  # (H, W)
-    range_m: float = _VIEW_RANGE_M  # how far a scan covers
 
     def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
-        """Cells seen from (x, y) within ±50° of ``yaw`` up to ``range_m``."""
+        """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range."""
         res = self.space.resolution_m
         angles = yaw + np.linspace(-_WEDGE_RAD, _WEDGE_RAD, 101)
-        steps = np.arange(0.3, self.range_m, res / 2)
+        steps = np.arange(0.3, _VIEW_RANGE_M, res / 2)
         px = x + np.outer(np.cos(angles), steps)
         py = y + np.outer(np.sin(angles), steps)
         cols = np.floor((px - self.space.lower_xy[0]) / res).astype(int)
