@@ -37,7 +37,7 @@ __all__ = [
 _DOOR_COLOR = "#e07b00"
 _WINDOW_COLOR = "#2aa6d6"
 #: Facets per side of a PDF surface at most.
-_FACETS = 150
+_FACETS = 80
 
 
 def _new_figure(width_in: float, height_in: float) -> Figure:

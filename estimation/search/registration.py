@@ -30,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.spatial import cKDTree
 
 from estimation.errors import EstimationError
+from estimation.search.neighbours import PointGrid
 
 __all__ = ["Cloud", "Registration", "RegistrationParams", "register"]
 
@@ -68,6 +68,9 @@ _MIN_POINTS = 50
 _MAX_SLIDE = 2.0
 #: Converged when an iteration moves the pose by less than this (m, and rad × 1 m).
 _STEP_TOLERANCE = 1e-4
+#: Source points farther than ``max_distance_m`` plus this from every target point at some pose
+#: are not looked up again until the pose has moved a point by more than this (m).
+_OVERLAP_MARGIN_M = 0.15
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,8 +86,8 @@ class Cloud:
         return len(self.points)
 
     @functools.cached_property
-    def tree(self) -> cKDTree:
-        return cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+    def grid(self) -> PointGrid:
+        return PointGrid(self.points)
 
     @classmethod
     def of(
@@ -178,17 +181,18 @@ def _normals(points: np.ndarray, params: RegistrationParams) -> np.ndarray:
     point is still matched as a source point, but no source point is matched to it)."""
     reach = _NORMAL_REACH * params.voxel_m
     k = min(params.neighbours, len(points))
-    _, index = cKDTree(points).query(points, k=k, distance_upper_bound=reach)
+    index = PointGrid(points).query(points, k, reach)
     normals = np.zeros_like(points)
-    _plane_normals(points, index.reshape(len(points), k), _MIN_NEIGHBOURS, normals)
+    _plane_normals(points, index, _MIN_NEIGHBOURS, normals)
     return normals
 
 
 @njit(cache=True, nogil=True)
 def _plane_normals(points: np.ndarray, index: np.ndarray, least: int, out: np.ndarray) -> None:
     """Into ``out[i]``: the unit normal of the plane through point i's neighbours ``index[i]``
-    (a cKDTree answer: ``len(points)`` where none), the axis of their scatter matrix with the
-    smallest eigenvalue; left as is where fewer than ``least`` neighbours were found."""
+    (a :class:`PointGrid` answer: ``len(points)`` where none), the axis of their scatter
+    matrix with the smallest eigenvalue; left as is where fewer than ``least`` neighbours were
+    found."""
     n, k = index.shape
     scatter = np.empty((3, 3))
     vectors = np.empty((3, 3))
@@ -306,7 +310,7 @@ def register(
     information = np.zeros((3, 3)) if prior is None else _inverse_covariance(prior)
     if len(source) < _MIN_POINTS or len(target) < _MIN_POINTS:
         return None
-    tree = target.tree
+    lookup = _Near(target, params.max_distance_m)
     pose = seed.copy()
     converged = False
     iterations = 0
@@ -325,7 +329,7 @@ def register(
         converged = False
         while iterations < params.iterations:
             iterations += 1
-            found = _linearised(points, target, tree, pose, reach, params)
+            found = _linearised(points, target, lookup, pose, reach, params)
             if found is None:
                 return None
             H, g, _, _ = found
@@ -341,8 +345,8 @@ def register(
             if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
                 converged = True
                 break
-    overlapping = _linearised(source, target, tree, pose, params.max_distance_m, params)
-    final = _linearised(source, target, tree, pose, params.inlier_m, params)
+    overlapping = _linearised(source, target, lookup, pose, params.max_distance_m, params)
+    final = _linearised(source, target, lookup, pose, params.inlier_m, params)
     if overlapping is None or final is None:
         return None
     near = overlapping[2]
@@ -351,7 +355,7 @@ def register(
     dof = max(float(weights.sum()) - 3.0, 1.0)
     sigma2 = max(float((weights * residuals**2).sum()) / dof, 1e-10)
     base = float((residuals**2).sum()) + (len(source) - len(residuals)) * params.inlier_m**2
-    H = _profiled(H, source, target, tree, pose, params, sigma2, base)
+    H = _profiled(H, source, target, lookup, pose, params, sigma2, base)
     try:
         covariance = np.linalg.inv(H / (sigma2 * params.inflation) + information)
     except np.linalg.LinAlgError:
@@ -369,7 +373,7 @@ def _profiled(
     H: np.ndarray,
     source: Cloud,
     target: Cloud,
-    tree: cKDTree,
+    lookup: _Near,
     pose: np.ndarray,
     params: RegistrationParams,
     sigma2: float,
@@ -388,7 +392,7 @@ def _profiled(
     reach = params.inlier_m
 
     def cost(at: np.ndarray) -> float:
-        index, ok = _matches(source, target, tree, at, reach)
+        index, ok = _matches(source, target, lookup, at, reach)
         _, _, residual, _ = _system(source, target, index, ok, at, params.huber_m)
         unmatched = len(source) - len(residual)
         return float(np.minimum(residual**2, reach**2).sum()) + unmatched * reach**2
@@ -428,14 +432,14 @@ def _inverse_covariance(covariance: np.ndarray) -> np.ndarray:
 def _linearised(
     source: Cloud,
     target: Cloud,
-    tree: cKDTree,
+    lookup: _Near,
     pose: np.ndarray,
     reach_m: float,
     params: RegistrationParams,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """The Gauss-Newton system (H, g) of the point-to-plane residuals at ``pose`` over the source
     points with a target within ``reach_m``, their residuals and Huber weights."""
-    index, ok = _matches(source, target, tree, pose, reach_m)
+    index, ok = _matches(source, target, lookup, pose, reach_m)
     if ok.sum() < _MIN_POINTS:
         return None
     return _system(source, target, index, ok, pose, params.huber_m)
@@ -488,8 +492,42 @@ def _gauss_newton(
         row += 1
 
 
+class _Near:
+    """The target's :class:`PointGrid`, and for each source cloud the points that may have a
+    target within ``reach_m``: at the pose they were last checked at, those with one within
+    ``reach_m`` + ``_OVERLAP_MARGIN_M``; checked again once the pose has moved some source point
+    by more than the margin. Most of a station's points overlap nothing of the other's (two
+    thirds on office_loop), and each iteration would look each of them up again."""
+
+    def __init__(self, target: Cloud, reach_m: float) -> None:
+        self.grid = target.grid
+        self.reach_m = reach_m
+        self._checked: dict[int, tuple[Cloud, float, np.ndarray, np.ndarray]] = {}
+
+    def rows(self, source: Cloud, pose: np.ndarray) -> np.ndarray:
+        """Indices of ``source``'s points that may have a target within ``reach_m`` at
+        ``pose``."""
+        checked = self._checked.get(id(source))
+        if checked is not None:
+            _, radius, at, rows = checked
+            turn = abs(math.remainder(float(pose[2] - at[2]), 2 * math.pi))
+            if math.hypot(pose[0] - at[0], pose[1] - at[1]) + turn * radius <= _OVERLAP_MARGIN_M:
+                return rows
+        nearest = self.grid.query(_moved(source.points, pose), 1, self.reach_m + _OVERLAP_MARGIN_M)
+        rows = np.flatnonzero(nearest[:, 0] < len(self.grid))
+        self._checked[id(source)] = (source, source.reach_m(), np.array(pose, dtype=float), rows)
+        return rows
+
+
+def _moved(points: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """``points`` (N, 3) moved by the planar ``pose``."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    return np.c_[c * points[:, 0] - s * points[:, 1] + pose[0],
+                 s * points[:, 0] + c * points[:, 1] + pose[1], points[:, 2]]  # fmt: skip
+
+
 def _matches(
-    source: Cloud, target: Cloud, tree: cKDTree, pose: np.ndarray, reach_m: float
+    source: Cloud, target: Cloud, lookup: _Near, pose: np.ndarray, reach_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each source point's target at ``pose``: the nearest of its ``_CANDIDATES`` nearest
     within ``reach_m`` that has a normal facing the same way as its own (within 60°; either way
@@ -497,20 +535,18 @@ def _matches(
     Returns the targets' indices and whether one was found. The nearest target is tried first
     for every point; the further candidates are looked up only for the points it does not
     suit."""
-    yaw = float(pose[2])
-    c, s = math.cos(yaw), math.sin(yaw)
-    p = source.points
-    moved = np.c_[c * p[:, 0] - s * p[:, 1] + pose[0], s * p[:, 0] + c * p[:, 1] + pose[1], p[:, 2]]
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    rows = lookup.rows(source, pose)
+    moved = _moved(source.points[rows], pose)
     oriented = source.oriented and target.oriented
-    _, nearest = tree.query(moved, distance_upper_bound=reach_m)
-    rows = np.arange(len(moved))
-    index, ok = np.zeros(len(moved), dtype=np.int64), np.zeros(len(moved), dtype=bool)
-    _pick(nearest.reshape(-1, 1), rows, target.normals, source.normals, c, s, oriented, index, ok)
-    retry = np.flatnonzero((nearest < len(target)) & ~ok)
+    nearest = lookup.grid.query(moved, 1, reach_m)
+    index, ok = np.zeros(len(source), dtype=np.int64), np.zeros(len(source), dtype=bool)
+    _pick(nearest, rows, target.normals, source.normals, c, s, oriented, index, ok)
+    retry = np.flatnonzero((nearest[:, 0] < len(target)) & ~ok[rows])
     k = min(_CANDIDATES, len(target))
     if len(retry) and k > 1:
-        _, candidates = tree.query(moved[retry], k=k, distance_upper_bound=reach_m)
-        _pick(candidates, retry, target.normals, source.normals, c, s, oriented, index, ok)
+        candidates = lookup.grid.query(moved[retry], k, reach_m)
+        _pick(candidates, rows[retry], target.normals, source.normals, c, s, oriented, index, ok)
     return index, ok
 
 
@@ -521,10 +557,10 @@ def _pick(
     ok: np.ndarray,
 ) -> None:  # fmt: skip
     """For source point ``rows[r]`` (its normal turned by the yaw's cosine and sine): the first
-    of ``candidates[r]`` (a cKDTree answer, nearest first, ``len(target_normals)`` where none)
-    that may pair with it into ``index``, and ``ok``; the nearest (or 0) and False when none
-    may. A target may pair when it has a normal and the two normals agree within 60° (facing the
-    same way when ``oriented``), or when the source point has no normal."""
+    of ``candidates[r]`` (a :class:`PointGrid` answer, nearest first, ``len(target_normals)``
+    where none) that may pair with it into ``index``, and ``ok``; the nearest (or 0) and False
+    when none may. A target may pair when it has a normal and the two normals agree within 60°
+    (facing the same way when ``oriented``), or when the source point has no normal."""
     n = len(target_normals)
     for r in range(len(rows)):
         i = rows[r]

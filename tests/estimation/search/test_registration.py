@@ -14,6 +14,8 @@ from estimation.search.registration import (
     RegistrationParams,
     _gauss_newton,
     _jacobi3,
+    _moved,
+    _Near,
     _normals,
     register,
 )
@@ -261,3 +263,25 @@ def test_a_registration_that_slid_far_from_its_seed_is_not_accepted() -> None:
     assert ended(2 * PARAMS.max_distance_m).accepted(PARAMS)
     assert not ended(2 * PARAMS.max_distance_m + 0.01).accepted(PARAMS)
     assert not Registration(np.zeros(3), np.eye(3), 1.0, 0.001, 40, False, 1000).accepted(PARAMS)
+
+
+def test_the_points_left_out_of_lookups_have_no_target_within_reach_at_any_later_pose() -> None:
+    """``_Near`` looks up only the source points that had a target within reach plus a margin
+    where they were last checked; at every pose the registration visits after, each point with
+    a target within reach is among them (the pruning changes nothing), and it checks again once
+    the pose has moved a point beyond the margin."""
+    rng = np.random.default_rng(7)
+    target = Cloud.of(_room(rng), PARAMS)
+    source = Cloud.of(_seen_from(_room(rng), np.array([1.5, 0.5, 0.3])), PARAMS)
+    lookup = _Near(target, PARAMS.max_distance_m)
+    seed = np.array([1.0, 0.0, 0.2])
+    first = lookup.rows(source, seed)
+    assert 0 < len(first) < len(source)
+    for step in rng.uniform(-1.0, 1.0, (60, 3)) * np.array([0.12, 0.12, 0.02]):
+        pose = seed + step
+        rows = lookup.rows(source, pose)
+        nearest = target.grid.query(_moved(source.points, pose), 1, PARAMS.max_distance_m)
+        within = np.flatnonzero(nearest[:, 0] < len(target))
+        assert np.isin(within, rows).all()
+    far = seed + np.array([0.0, 0.0, 0.1])  # 0.1 rad turns the outer points by decimetres
+    assert not np.array_equal(lookup.rows(source, far), first)

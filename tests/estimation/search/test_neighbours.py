@@ -1,0 +1,112 @@
+"""The voxel-grid neighbour search: a k-d tree's answer, on any cloud, within bounded memory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from estimation.errors import EstimationError
+from estimation.search.neighbours import PointGrid
+
+
+def _distances(points: np.ndarray, queries: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Distances of the answered neighbours, -1 where none (index == len(points))."""
+    padded = np.vstack([points, np.full((1, 3), np.inf)])
+    d = np.linalg.norm(padded[index] - queries[:, None, :], axis=2)
+    return np.where(np.isfinite(d), d, -1.0)
+
+
+def _tree(points: np.ndarray, queries: np.ndarray, k: int, reach: float) -> np.ndarray:
+    _, index = cKDTree(points).query(queries, k=k, distance_upper_bound=reach)
+    return np.asarray(index).reshape(len(queries), k)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 300),
+    k=st.integers(1, 12),
+    reach=st.floats(0.01, 2.0),
+    cell=st.floats(0.03, 0.6),
+)
+def test_the_answer_is_the_k_d_trees(seed: int, n: int, k: int, reach: float, cell: float) -> None:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-2.0, 2.0, (n, 3)) * rng.uniform(0.01, 3.0, 3)
+    queries = rng.uniform(-3.0, 3.0, (40, 3))  # some beyond the cloud's box
+    grid = PointGrid(points, cell_m=cell)
+    index = grid.query(queries, k, reach)
+    assert index.shape == (40, k)
+    assert index.dtype == np.int64
+    expected = _tree(points, queries, k, reach)
+    np.testing.assert_allclose(_distances(points, queries, index),
+                               _distances(points, queries, expected), atol=1e-12)  # fmt: skip
+    assert ((index == n) == (expected == n)).all()
+
+
+def test_a_surface_cloud_matches_the_tree_at_the_registrations_reaches() -> None:
+    """A box of walls at the registration's 5 cm voxels, queried 3.6 cm off (a registration
+    near convergence) with k = 1, 8 and 20 at 10 and 30 cm."""
+    rng = np.random.default_rng(3)
+    u = np.arange(0.0, 4.0, 0.05)
+    a, b = np.meshgrid(u, u[:50])
+    walls = [np.c_[a.ravel(), np.zeros(a.size), b.ravel()],
+             np.c_[np.zeros(a.size), a.ravel(), b.ravel()],
+             np.c_[a.ravel(), np.full(a.size, 4.0), b.ravel()]]  # fmt: skip
+    points = np.vstack(walls) + rng.normal(0.0, 0.004, (3 * a.size, 3))
+    queries = points + np.array([0.03, -0.02, 0.0])
+    grid = PointGrid(points)
+    for k, reach in ((1, 0.1), (1, 0.3), (8, 0.3), (20, 0.3)):
+        index = grid.query(queries, k, reach)
+        expected = _tree(points, queries, k, reach)
+        np.testing.assert_allclose(_distances(points, queries, index),
+                                   _distances(points, queries, expected), atol=1e-12)  # fmt: skip
+        assert (index[:, 0] < len(points)).all()
+
+
+def test_nothing_within_reach_is_len_points() -> None:
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    grid = PointGrid(points)
+    index = grid.query(np.array([[0.5, 0.0, 0.0], [10.0, 10.0, 10.0], [0.05, 0.0, 0.0]]), 2, 0.4)
+    assert index.tolist() == [[2, 2], [2, 2], [0, 2]]
+    assert grid.query(np.array([[0.5, 0.0, 0.0]]), 2, 0.5).tolist() in ([[0, 1]], [[1, 0]])
+
+
+def test_an_empty_cloud_and_no_queries() -> None:
+    empty = PointGrid(np.zeros((0, 3)))
+    assert len(empty) == 0
+    assert empty.query(np.zeros((3, 3)), 2, 1.0).tolist() == [[0, 0]] * 3
+    assert PointGrid(np.ones((4, 3))).query(np.zeros((0, 3)), 3, 1.0).shape == (0, 3)
+
+
+def test_a_cloud_over_a_huge_box_gets_larger_cells_not_a_huge_grid() -> None:
+    """Three points, two of them 10 km apart: 1e15 cells of 10 cm; the grid keeps to its 4,096
+    cells and the answer stays exact. A large cloud gets at most 4 cells per point."""
+    points = np.array([[0.0, 0.0, 0.0], [10_000.0, 10_000.0, 10_000.0], [0.05, 0.0, 0.0]])
+    grid = PointGrid(points)
+    assert len(grid.starts) <= 4096 + 1
+    assert grid.cell_m > 10_000.0 / 16
+    assert grid.query(np.array([[0.01, 0.0, 0.0]]), 3, 1.0).tolist() == [[0, 2, 3]]
+    spread = np.random.default_rng(0).uniform(0.0, 100.0, (20_000, 3))
+    assert len(PointGrid(spread).starts) <= 4 * 20_000 + 1
+
+
+@pytest.mark.parametrize(
+    ("points", "cell", "message"),
+    [
+        (np.array([[0.0, np.nan, 0.0]]), 0.1, "points must be finite"),
+        (np.array([[0.0, np.inf, 0.0]]), 0.1, "points must be finite"),
+        (np.zeros((2, 3)), 0.0, "cell size must be positive"),
+        (np.zeros((2, 3)), float("nan"), "cell size must be positive"),
+    ],
+)
+def test_bad_clouds_are_one_line_errors(points: np.ndarray, cell: float, message: str) -> None:
+    with pytest.raises(EstimationError, match=message):
+        PointGrid(points, cell_m=cell)
+
+
+def test_k_below_one_is_an_error() -> None:
+    with pytest.raises(EstimationError, match="k must be at least 1"):
+        PointGrid(np.zeros((2, 3))).query(np.zeros((1, 3)), 0, 1.0)
