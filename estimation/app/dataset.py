@@ -66,6 +66,19 @@ class Dataset:
     starts: dict[str, np.ndarray]  # declared start poses (x_m, y_m, yaw_rad): the map frame
     events: list[dict[str, Any]]
     mission: dict[str, Any]
+    _odometry: dict[str, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, repr=False, compare=False
+    )
+
+    def odometry(self, robot: str) -> tuple[np.ndarray, np.ndarray]:
+        """(stamps_s, poses (N, 3)) of ``robots/<robot>/odometry.tum``, read once per dataset
+        (read-only arrays: several stages use them)."""
+        cached = self._odometry.get(robot)
+        if cached is None:
+            stamps, poses = read_tum(self.path / "robots" / robot / "odometry.tum")
+            stamps.flags.writeable = poses.flags.writeable = False
+            cached = self._odometry[robot] = (stamps, poses)
+        return cached
 
     def stop_times(self, robot: str) -> dict[int, float]:
         """When each pose index of ``robot`` began (index 0 at the start)."""
@@ -106,10 +119,7 @@ class Dataset:
 def read_pose_stamps(dataset: Dataset) -> dict[str, dict[int, float]]:
     """Every robot's pose stamps (:meth:`Dataset.pose_stamps`) from its ``odometry.tum``."""
     return {
-        robot: dataset.pose_stamps(
-            robot, read_tum(dataset.path / "robots" / robot / "odometry.tum")[0]
-        )
-        for robot in dataset.robots
+        robot: dataset.pose_stamps(robot, dataset.odometry(robot)[0]) for robot in dataset.robots
     }
 
 

@@ -26,7 +26,7 @@ from estimation.posegraph.keys import pose_key
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
-from sensors.trajio import pose_at, read_tum
+from sensors.trajio import pose_at
 
 __all__ = ["Counts", "EventMaker", "EventStream", "build_events"]
 
@@ -161,7 +161,7 @@ def build_events(
 ) -> EventStream:
     """The estimator's event stream of a dataset, the sweeps, and the counts of what failed
     (:class:`EventMaker` over the dataset's event log)."""
-    odometry = {r: read_tum(dataset.path / "robots" / r / "odometry.tum") for r in dataset.robots}
+    odometry = {r: dataset.odometry(r) for r in dataset.robots}
     maker = EventMaker(dataset.config, dataset.robots, dataset.starts, odometry)
     for number, entry in enumerate(dataset.events):
         maker.feed(number, entry, streams)

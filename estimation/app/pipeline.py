@@ -62,7 +62,6 @@ from sensors.atomic import check_replaceable
 from sensors.errors import SensorError
 from sensors.geometry.frames import pose2_matrix
 from sensors.lms200.capture import CaptureReader
-from sensors.trajio import read_tum
 
 __all__ = [
     "Prepared",
@@ -130,7 +129,7 @@ def prepare(
     scanner = dataset.config.scanner
     limits = scan_limits(dataset.config)
     for robot in dataset.robots:  # a malformed odometry fails now, not after the decoding
-        read_tum(dataset.path / "robots" / robot / "odometry.tum")
+        dataset.odometry(robot)
     for robot in dataset.robots:
         if progress is not None:
             progress(f"decoding robot {robot}")
