@@ -395,21 +395,24 @@ class Explorer:
         around it would see its beacon. With ``look_first``, a heading facing enough unexplored
         floor counts even before a mapper pose there is known: the reference's own sweep at the
         station shows the floor the mapper will drive on. The heading with the best score less
-        the cost of the pivots that tie the turn wins, unless the best heading from which a
-        mapper pose is known, turned to untied, scores more than ``_UNTIED_COST`` above it (a
-        turn only to look would leave a pose that odometry alone places). Untied, the turn is
-        measured by the mapper's odometry and then by the station's link to the one before.
-        Without that option the reference at the front of the pair, which faces its partner
+        the cost of the pivots that tie the turn wins, unless the best heading (one to look
+        first included), turned to untied, scores more than ``_UNTIED_COST`` above it. Untied,
+        the turn is measured by the reference's odometry until the mapper, having driven by
+        odometry from a tied pose, observes it, and by the station's link to the one before.
+        Without untied turns the reference at the front of the pair, which faces its partner
         to see its beacon, kept facing back wherever no pivot fits (narrow rooms): the mapper
         then scanned behind it, and the pair advanced 0.7 m per station (generated building 0:
-        12 stations up a 3.3 m wide office)."""
+        12 stations up a 3.3 m wide office). With untied turns only where a mapper pose was
+        known, a turn only to look stayed tied, and the same happened wherever nothing beyond
+        the front robot had been seen yet (building 0: 20 stations across a 3.3 m × 4.8 m
+        office; 5 once such a turn may be untied)."""
         start = view.free_near(mapper[:2])
         if start is None:
             return None
         reachable = view.distances_from([start])
         goal = self._goal_field(view, frontier)
         scored: list[tuple[float, float]] = []
-        untied: tuple[float, float] | None = None  # the best heading with a mapper pose
+        untied: tuple[float, float] | None = None  # the best heading
         for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
             pose = np.array([reference[0], reference[1], heading])
             candidates = self._candidates(view, pose, mapper, others, reachable, [])
@@ -421,6 +424,8 @@ class Explorer:
                     untied = scored[-1]
             elif look_first and own >= _LOOK_FIRST_CELLS:
                 scored.append((own - _LOOK_FIRST_COST, float(heading)))
+                if untied is None or scored[-1][0] > untied[0]:
+                    untied = scored[-1]
         if not scored:
             return None
         scored.sort(key=lambda item: -item[0])

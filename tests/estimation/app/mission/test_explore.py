@@ -383,6 +383,39 @@ def test_an_untied_turn_wins_only_by_more_than_its_cost(
         assert free.heading == tied.heading  # the tied plan was the best heading already
 
 
+def test_a_turn_only_to_look_may_be_taken_untied(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The reference in room A faces its mapper, away from the door to room B, whose back
+    nobody has seen. No mapper pose is known beyond the door, so facing it is a turn only to
+    look; no chain of pivots ties a half turn there. It is taken untied when it beats every
+    tied heading by more than the untied cost: otherwise the robot at the front of a pair keeps
+    facing back (generated building 0: 20 stations to cross a 3.3 m × 4.8 m office, 5 with
+    this)."""
+    from estimation.app.mission.explore import _reachable_frontiers
+
+    reference, mapper = np.array([5.0, 2.0, math.pi]), np.array([2.5, 2.0, 0.0])
+    found = _reachable_frontiers(view, [reference[:2], mapper[:2]])
+    frontier = min(found, key=lambda item: item[1])[0]
+    assert frontier.centroid_xy[0] > 6.0  # the door to room B
+    plain = Explorer(CONFIG, (1.5, 3.5)).heading(view, reference, mapper, [reference], frontier)
+    assert plain is not None
+    assert abs(math.remainder(plain.heading - math.pi, 2 * math.pi)) < math.radians(90.0)
+    looked = Explorer(CONFIG, (1.5, 3.5)).heading(
+        view, reference, mapper, [reference], frontier, look_first=True
+    )
+    assert looked is not None
+    assert not looked.tied
+    assert looked.parts == ((looked.heading, None),)
+    assert abs(math.remainder(looked.heading, 2 * math.pi)) <= math.radians(30.0)  # the door
+    monkeypatch.setattr(explore, "_UNTIED_COST", 1e9)
+    costly = Explorer(CONFIG, (1.5, 3.5)).heading(
+        view, reference, mapper, [reference], frontier, look_first=True
+    )
+    assert costly is not None
+    assert costly.tied
+
+
 def test_lines_of_sight_ignore_the_robots_where_they_stand_now_not_where_they_stood() -> None:
     # A room seen free, with one column occupied from the floor to 2 m at (3.0, 2.0): the mast
     # and beacon a robot left in the map where it once stood, or a coat stand.
