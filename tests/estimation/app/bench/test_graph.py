@@ -57,6 +57,8 @@ def test_bench_graph_command_prints_json() -> None:
     for key in ("batch_seconds", "isam2_update_median_ms", "isam2_update_p99_ms", "poses", "ratio"):
         assert report[key] == report["cases"][0][key]
     assert report["poses"] == 1728
+    case = report["cases"][0]
+    assert 0 <= case["reeliminated_median"] <= case["reeliminated_p99"] <= 1728
 
 
 @pytest.mark.parametrize(
