@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -103,8 +104,16 @@ def test_agreement_counts_cells_known_to_both() -> None:
     assert map_agreement(OccupancyGrid(params), tree) == (0.0, 0)
 
 
-def test_the_benchmark_object_follows_design_11(tmp_path: Path) -> None:
-    result = run_fusion_benchmark(Config(), tmp_path, repeats=1, refusion_scans=0)
+@pytest.fixture(scope="module")
+def measured(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """One run of the benchmark (9 s), without the shared data: the simulated scan alone."""
+    return run_fusion_benchmark(
+        Config(), tmp_path_factory.mktemp("nodata"), repeats=1, refusion_scans=0
+    )
+
+
+def test_the_benchmark_object_follows_design_11(measured: dict[str, Any]) -> None:
+    result = measured
     assert result.keys() >= FIGURES
     assert result["benchmark"] == "fusion"
     assert [c["name"] for c in result["cases"]] == ["essex_lab"] * 3  # no shared data in tmp_path
@@ -141,17 +150,33 @@ def test_the_real_scan_is_read() -> None:
     assert 28.0 < ranges.max() < 30.0
 
 
-def test_cli_prints_json_and_text(tmp_path: Path) -> None:
+def test_cli_prints_json_and_text(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, measured: dict[str, Any]
+) -> None:
+    """The command passes its options on and prints the benchmark's figures as JSON or as text
+    (the figures of one run, not measured again for each)."""
+    from estimation.app.bench import fusion
+
+    calls: list[tuple[Path, int, int]] = []
+
+    def run(config: Config, data: Path, *, repeats: int, refusion_scans: int) -> dict[str, Any]:
+        calls.append((data, repeats, refusion_scans))
+        return measured
+
+    monkeypatch.setattr(fusion, "run_fusion_benchmark", run)
     runner = CliRunner()
     args = ["bench", "fusion", "--repeats", "1", "--refusion-scans", "0", "--data", str(tmp_path)]
     result = runner.invoke(app, [*args, "--json"])
     assert result.exit_code == 0, result.output
     figures = json.loads(result.stdout)
     assert figures.keys() >= FIGURES
+    assert figures == json.loads(json.dumps(measured))
     text = runner.invoke(app, args)
     assert text.exit_code == 0
+    assert text.stdout == fusion.format_fusion_report(measured) + "\n"
     assert "essex_lab" in text.stdout
     assert "× OctoMap's rays/s" in text.stdout
+    assert calls == [(tmp_path, 1, 0)] * 2
 
 
 def test_map_errors_are_one_line_in_the_cli() -> None:
