@@ -239,3 +239,32 @@ def test_a_scan_without_a_stamp_cannot_be_placed_in_time() -> None:
     np.testing.assert_array_equal(clock.times(), scan_times(scans[:1]))  # nothing was added
     with pytest.raises(SensorError, match="every scan needs a host stamp"):
         scan_times([scans[0], unstamped])
+
+
+def test_arm_and_edge_on_tests_over_a_sweep_match_scan_by_scan_with_mixed_variants() -> None:
+    """Scans of two variants (181 and 361 samples) in one stretch: the stacked tests give each
+    scan the answer of its own samples."""
+    from sensors.lms200.protocol.scan import scan_bearings
+    from sensors.scan3d.mirror import arm_blocked, edge_on_times
+
+    rng = np.random.default_rng(5)
+    geometry = GEOMETRY
+    scans = []
+    for k in range(300):
+        count = 181 if k % 3 else 361
+        ranges = rng.uniform(0.02, 6.0, count)
+        if rng.random() < 0.3:
+            ranges[:40] = 0.05  # the arm over the right-most samples
+        bearings = scan_bearings(count, False, 0.0)
+        if 100 <= k < 110:  # the mirror edge-on: the central beams short
+            ranges[np.abs(bearings) < geometry.edge_on_beams_rad * 0.8] = 0.01
+        ranges[rng.random(count) < 0.05] = np.nan
+        scans.append(Scan(ranges, bearings, np.zeros(count, np.uint8),
+                          np.zeros(count, np.uint8), 0.001))  # fmt: skip
+    blocked = arm_blocked(scans, 40, 0.25)
+    expected = [np.count_nonzero(s.ranges_m[:40] < 0.25) * 2 > 40 for s in scans]
+    assert blocked.tolist() == expected
+    assert 50 < blocked.sum() < 150
+    times = np.arange(300) * 0.0133
+    centres = edge_on_times(scans, times, geometry)
+    assert centres == pytest.approx([0.25 * (times[99] + times[100] + times[109] + times[110])])
