@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sensors.errors import SensorError
-from sensors.lms200.protocol.scan import Scan
+from sensors.lms200.protocol.scan import REFLECTOR_MODES, Scan, SpecialCode
 from sensors.lms200.protocol.telegram import TURN_S
 
 __all__ = [
@@ -348,31 +348,58 @@ def assemble_sweeps(
         rows = np.flatnonzero(valid_phase & ~blind & (sweep_index == index))
         if len(rows) < min_scans:
             continue
-        parts: dict[str, list[np.ndarray]] = {k: [] for k in ("r", "b", "e", "f", "m", "t")}
-        for k in rows:
-            scan = scans[k]
-            keep = scan.valid.copy()
-            keep[: geometry.arm_samples] = False
-            keep &= scan.ranges_m * np.cos(scan.bearing_rad) > geometry.axis_offset_m + 0.02
-            parts["r"].append(scan.ranges_m[keep])
-            parts["b"].append(scan.bearing_rad[keep])
-            parts["e"].append(np.full(np.count_nonzero(keep), phi[k]))
-            parts["f"].append(scan.flags[keep])
-            parts["m"].append(scan.reflector[keep])
-            parts["t"].append(np.full(np.count_nonzero(keep), times_s[k]))
-        r, b, e = (np.concatenate(parts[key]) for key in ("r", "b", "e"))
+        r, b, e, f, m, t = _samples([scans[k] for k in rows], phi[rows], times_s[rows], geometry)
         sweeps.append(
             Scan3D(
                 points_scanner=mirror_points(r, b, e, geometry.axis_offset_m),
                 range_m=r,
                 bearing_rad=b,
                 elevation_rad=e,
-                reflector=np.concatenate(parts["m"]),
-                flags=np.concatenate(parts["f"]),
-                stamp_s=np.concatenate(parts["t"]),
+                reflector=m,
+                flags=f,
+                stamp_s=t,
                 start_s=float(times_s[rows[0]]),
                 end_s=float(times_s[rows[-1]]),
                 scans=len(rows),
             )
         )
     return sweeps
+
+
+def _samples(
+    scans: list[Scan], phi: np.ndarray, times_s: np.ndarray, geometry: MirrorGeometry
+) -> tuple[np.ndarray, ...]:
+    """(range, bearing, elevation, flags, reflector, stamp) of the samples a sweep keeps from
+    its ``scans`` (taken at elevations ``phi`` and times ``times_s``), in scan order: valid,
+    not under the arm, farther than the mirror. One array operation when the scans share their
+    variant and measuring mode (a sweep's hundreds of scans do), else scan by scan."""
+    first = scans[0]
+    if all(s.bearing_rad is first.bearing_rad and s.measuring_mode == first.measuring_mode
+           for s in scans):  # fmt: skip
+        ranges = np.stack([s.ranges_m for s in scans])
+        flags = np.stack([s.flags for s in scans])
+        keep = np.stack([s.code for s in scans]) == SpecialCode.VALID
+        keep[:, : geometry.arm_samples] = False
+        keep &= ranges * np.cos(first.bearing_rad) > geometry.axis_offset_m + 0.02
+        counts = np.count_nonzero(keep, axis=1)
+        kept_flags = flags[keep]
+        reflector = (
+            kept_flags > 0
+            if first.measuring_mode in REFLECTOR_MODES
+            else np.zeros(len(kept_flags), dtype=bool)
+        )
+        bearings = np.broadcast_to(first.bearing_rad, ranges.shape)[keep]
+        return (ranges[keep], bearings, np.repeat(phi, counts), kept_flags, reflector,
+                np.repeat(times_s, counts))  # fmt: skip
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("r", "b", "e", "f", "m", "t")}
+    for scan, elevation, time_s in zip(scans, phi, times_s, strict=True):
+        keep = scan.valid.copy()
+        keep[: geometry.arm_samples] = False
+        keep &= scan.ranges_m * np.cos(scan.bearing_rad) > geometry.axis_offset_m + 0.02
+        parts["r"].append(scan.ranges_m[keep])
+        parts["b"].append(scan.bearing_rad[keep])
+        parts["e"].append(np.full(np.count_nonzero(keep), elevation))
+        parts["f"].append(scan.flags[keep])
+        parts["m"].append(scan.reflector[keep])
+        parts["t"].append(np.full(np.count_nonzero(keep), time_s))
+    return tuple(np.concatenate(parts[key]) for key in ("r", "b", "e", "f", "m", "t"))

@@ -268,3 +268,31 @@ def test_arm_and_edge_on_tests_over_a_sweep_match_scan_by_scan_with_mixed_varian
     times = np.arange(300) * 0.0133
     centres = edge_on_times(scans, times, geometry)
     assert centres == pytest.approx([0.25 * (times[99] + times[100] + times[109] + times[110])])
+
+
+def test_a_sweeps_samples_are_the_same_stacked_or_scan_by_scan() -> None:
+    """The stacked path (scans of one variant and mode) keeps the samples the scan-by-scan one
+    keeps, in the same order; a stretch that mixes variants takes the scan-by-scan path."""
+    from sensors.lms200.protocol.scan import SpecialCode, scan_bearings
+    from sensors.scan3d.mirror import _samples
+
+    rng = np.random.default_rng(9)
+    bearings = scan_bearings(181, False, 0.0)
+    scans = []
+    for _ in range(40):
+        code = np.where(rng.random(181) < 0.1, SpecialCode.DAZZLE, SpecialCode.VALID)
+        scans.append(Scan(rng.uniform(0.02, 8.0, 181), bearings, rng.integers(0, 4, 181, np.uint8),
+                          code.astype(np.uint8), 0.001, measuring_mode=1))  # fmt: skip
+    phi, times = rng.uniform(-1.0, 1.0, 40), np.arange(40) * 0.0133
+    stacked = _samples(scans, phi, times, GEOMETRY)
+    odd = Scan(np.full(361, 3.0), scan_bearings(361, False, 0.0), np.zeros(361, np.uint8),
+               np.zeros(361, np.uint8), 0.001, measuring_mode=1)  # fmt: skip
+    mixed = _samples([*scans, odd], np.r_[phi, 0.0], np.r_[times, 1.0], GEOMETRY)
+    n = len(stacked[0])
+    assert 40 * 181 * 0.5 < n < 40 * 181
+    for a, b in zip(stacked, mixed, strict=True):
+        np.testing.assert_array_equal(a, b[:n])
+    assert stacked[4].any()  # reflector bits in mode 1
+    assert not stacked[4].all()
+    beyond = 3.0 * np.cos(odd.bearing_rad[GEOMETRY.arm_samples :]) > GEOMETRY.axis_offset_m + 0.02
+    assert len(mixed[0]) == n + np.count_nonzero(beyond)
