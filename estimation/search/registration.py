@@ -325,6 +325,7 @@ def register(
     # (a surface only one station saw, matched to a neighbouring one) pulled links by
     # centimetres.
     stages.append((source, params.inlier_m))
+    limit = _MAX_SLIDE * params.max_distance_m
     for points, reach in stages:
         converged = False
         while iterations < params.iterations:
@@ -342,9 +343,13 @@ def register(
                 return None
             pose = pose + step
             pose[2] = math.remainder(pose[2], 2 * math.pi)
+            if math.hypot(pose[0] - seed[0], pose[1] - seed[1]) > limit:
+                break  # it slid: refused however it ends (office_loop: 6 of 45, 40 iterations)
             if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
                 converged = True
                 break
+        if not converged:
+            break
     overlapping = _linearised(source, target, lookup, pose, params.max_distance_m, params)
     final = _linearised(source, target, lookup, pose, params.inlier_m, params)
     if overlapping is None or final is None:
