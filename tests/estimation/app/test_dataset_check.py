@@ -11,14 +11,12 @@ from typer.testing import CliRunner
 
 from estimation.app.cli.main import app
 from estimation.app.dataset_check import check_dataset
-from estimation.app.sim.simulate import run_simulation
-from tests.paths import REPO
+from tests.estimation.app.missions import copy_of
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("check") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    out = copy_of(essex_simulated, tmp_path_factory, "check")
     return out
 
 

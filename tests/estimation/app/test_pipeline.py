@@ -19,14 +19,13 @@ from estimation.app.sim.simulate import run_simulation
 from mapping.formats.npz import load_map
 from sensors.errors import SensorError
 from sensors.trajio import read_g2o, read_tum
+from tests.estimation.app.missions import copy_of
 from tests.paths import REPO
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("mission") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
-    return out
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    return copy_of(essex_simulated, tmp_path_factory, "mission")
 
 
 @pytest.fixture(scope="module")

@@ -12,19 +12,17 @@ import pytest
 from estimation.app.config import load_config
 from estimation.app.evaluation.evaluate import evaluate
 from estimation.app.pipeline import run_batch
-from estimation.app.sim.simulate import run_simulation
 from mapping.band import extract_band
 from mapping.formats.npz import load_map
 from mapping.formats.pgm import UNKNOWN_PIXEL, read_band_pgm
 from sensors.trajio import read_tum
+from tests.estimation.app.missions import copy_of
 from tests.mapping.formats.map_server import load_map_server, read_pgm_pixels
-from tests.paths import REPO
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("results") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    out = copy_of(essex_simulated, tmp_path_factory, "results")
     run_batch(out)
     return out
 

@@ -31,6 +31,7 @@ from unittest import mock
 import pytest
 from typer.testing import CliRunner
 
+from tests.estimation.app.missions import copy_of
 from tests.paths import REPO
 
 #: Every case must finish within this (seconds); a slower one is a hang.
@@ -103,13 +104,14 @@ class Outcome:
     traceback: str = ""
 
 
-def simulated_dataset(factory: pytest.TempPathFactory, *, result: bool = True) -> Path:
-    """The module's small simulated dataset (essex_lab), with a batch result when asked."""
+def simulated_dataset(
+    factory: pytest.TempPathFactory, simulated: Path, *, result: bool = True
+) -> Path:
+    """The module's own copy of the session's essex_lab dataset (``simulated``), with a batch
+    result when asked."""
     from estimation.app.pipeline import run_batch
-    from estimation.app.sim.simulate import run_simulation
 
-    out = factory.mktemp("mission") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", out)
+    out = copy_of(simulated, factory, "mission")
     if result:
         run_batch(out)
     return out
@@ -288,6 +290,7 @@ _GUARD_SCRIPT = """
 import json, resource, signal, sys
 resource.setrlimit(resource.RLIMIT_AS, ({limit}, {limit}))
 from tests.estimation.app.cli.malformed import invoke
+from tests.estimation.app.missions import copy_of
 out = []
 for args in json.loads(sys.stdin.read()):
     o = invoke(args, {timeout})

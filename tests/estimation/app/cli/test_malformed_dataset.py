@@ -491,8 +491,8 @@ CASES = MISSION_CASES + EVENT_CASES + CAPTURE_CASES + ODOMETRY_CASES + TRUTH_CAS
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulated_dataset(tmp_path_factory)
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    return simulated_dataset(tmp_path_factory, essex_simulated)
 
 
 @pytest.fixture(scope="module")

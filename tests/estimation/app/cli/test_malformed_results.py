@@ -276,12 +276,12 @@ CASES = REPORT_CASES + MAP_CASES + CHECKPOINT_CASES
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
     """The dataset with its batch result and an iSAM2 checkpoint (a run cut short after 5
     events)."""
     from estimation.app.pipeline import run_isam
 
-    ds = simulated_dataset(tmp_path_factory)
+    ds = simulated_dataset(tmp_path_factory, essex_simulated)
     run_isam(ds, stop_after=5)
     assert (ds / ".result_isam.checkpoint.npz").is_file()
     return ds

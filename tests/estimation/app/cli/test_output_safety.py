@@ -223,8 +223,8 @@ ALL = CASES + REPLACED
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return simulated_dataset(tmp_path_factory)
+def dataset(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    return simulated_dataset(tmp_path_factory, essex_simulated)
 
 
 @cases_param(CASES)

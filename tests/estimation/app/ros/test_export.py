@@ -17,22 +17,22 @@ from estimation.app.cli.main import app
 from estimation.app.config import load_config
 from estimation.app.pipeline import run_batch
 from estimation.app.ros.export import export_result
-from estimation.app.sim.simulate import run_simulation
 from mapping.band import extract_band
 from mapping.formats.npz import load_map
 from mapping.formats.octomap_bt import tree_stream
 from mapping.grid import OccupancyGrid
 from sensors.geometry import se2
 from sensors.trajio import read_tum
-from tests.paths import REPO
+from tests.estimation.app.missions import copy_of
 
 Messages = dict[str, list[tuple[int, str, Any]]]
 
 
 @pytest.fixture(scope="module")
-def exported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Messages]:
-    dataset = tmp_path_factory.mktemp("ros") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", dataset)
+def exported(
+    tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path
+) -> tuple[Path, Path, Messages]:
+    dataset = copy_of(essex_simulated, tmp_path_factory, "ros")
     run_batch(dataset)
     bag = dataset.parent / "essex.mcap"
     export_result(dataset / "result", bag)

@@ -37,6 +37,7 @@ from estimation.errors import EstimationError
 from estimation.posegraph.keys import split_key
 from mapping.formats.npz import load_map
 from sensors.trajio import read_tum
+from tests.estimation.app.missions import copy_of
 from tests.estimation.app.ros.test_export import check_ceiling_band, check_voxel_grid
 from tests.paths import REPO
 
@@ -174,9 +175,8 @@ def typestore() -> Any:
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    dataset = tmp_path_factory.mktemp("live") / "essex"
-    run_simulation(REPO / "configs" / "missions" / "essex_lab.yaml", dataset)
+def result(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
+    dataset = copy_of(essex_simulated, tmp_path_factory, "live")
     run_batch(dataset)
     return dataset / "result"
 
