@@ -541,7 +541,8 @@ def _matches(
     for every point; the further candidates are looked up only for the points it does not
     suit."""
     c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    rows = lookup.rows(source, pose)
+    # The pruning holds for reaches up to the one it was made for; beyond, every point.
+    rows = lookup.rows(source, pose) if reach_m <= lookup.reach_m else np.arange(len(source))
     moved = _moved(source.points[rows], pose)
     oriented = source.oriented and target.oriented
     nearest = lookup.grid.query(moved, 1, reach_m)
