@@ -510,8 +510,8 @@ class _Near:
         self._checked: dict[int, tuple[Cloud, float, np.ndarray, np.ndarray]] = {}
 
     def rows(self, source: Cloud, pose: np.ndarray) -> np.ndarray:
-        """Indices of ``source``'s points that may have a target within ``reach_m`` at
-        ``pose``."""
+        """Indices of ``source``'s points that may have a target within ``reach_m`` at ``pose``
+        (:func:`_matches` looks every point up for a larger reach)."""
         checked = self._checked.get(id(source))
         if checked is not None:
             _, radius, at, rows = checked
@@ -541,7 +541,6 @@ def _matches(
     for every point; the further candidates are looked up only for the points it does not
     suit."""
     c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    # The pruning holds for reaches up to the one it was made for; beyond, every point.
     rows = lookup.rows(source, pose) if reach_m <= lookup.reach_m else np.arange(len(source))
     moved = _moved(source.points[rows], pose)
     oriented = source.oriented and target.oriented
