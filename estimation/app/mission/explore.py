@@ -412,7 +412,6 @@ class Explorer:
         reachable = view.distances_from([start])
         goal = self._goal_field(view, frontier)
         scored: list[tuple[float, float]] = []
-        untied: tuple[float, float] | None = None  # the best heading
         for heading in np.radians(np.arange(0.0, 360.0, 15.0)):
             pose = np.array([reference[0], reference[1], heading])
             candidates = self._candidates(view, pose, mapper, others, reachable, [])
@@ -420,15 +419,12 @@ class Explorer:
             if candidates:
                 values = [self._value(view, c, reachable, goal) for c in candidates[::2]]
                 scored.append((max(values) + own, float(heading)))
-                if untied is None or scored[-1][0] > untied[0]:
-                    untied = scored[-1]
             elif look_first and own >= _LOOK_FIRST_CELLS:
                 scored.append((own - _LOOK_FIRST_COST, float(heading)))
-                if untied is None or scored[-1][0] > untied[0]:
-                    untied = scored[-1]
         if not scored:
             return None
-        scored.sort(key=lambda item: -item[0])
+        scored.sort(key=lambda item: -item[0])  # stable: the first of equal scores stays first
+        untied = scored[0]  # the best heading, were it turned to untied
         best: tuple[float, TurnPlan] | None = None
         for score, heading in scored:
             if best is not None and score <= best[0]:
@@ -440,9 +436,9 @@ class Explorer:
             value = score - _PIVOT_COST * plan.pivots
             if best is None or value > best[0]:
                 best = (value, plan)
-        if untied is not None and (best is None or untied[0] - _UNTIED_COST > best[0]):
+        if best is None or untied[0] - _UNTIED_COST > best[0]:
             return TurnPlan(untied[1], ((untied[1], None),), False)
-        return None if best is None else best[1]
+        return best[1]
 
     def tie(self, view: MapView, reference: np.ndarray, heading: float, mapper: np.ndarray,
             others: list[np.ndarray]) -> tuple[_Part, ...] | None:  # fmt: skip
