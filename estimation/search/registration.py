@@ -116,12 +116,14 @@ class Cloud:
         centres = _means(points, inverse, counts)
         if len(centres) < params.neighbours:
             return cls.empty()
-        normals = _normals(centres, params)
-        if viewpoints is None:
-            return cls(centres, normals)
-        towards = _means(viewpoints, inverse, counts) - centres
-        normals *= np.where((normals * towards).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
-        return cls(centres, normals, oriented=True)
+        grid = PointGrid(centres)
+        normals = _normals(centres, params, grid)
+        if viewpoints is not None:
+            towards = _means(viewpoints, inverse, counts) - centres
+            normals *= np.where((normals * towards).sum(axis=1) < 0.0, -1.0, 1.0)[:, None]
+        cloud = cls(centres, normals, oriented=viewpoints is not None)
+        cloud.__dict__["grid"] = grid  # the normals' grid, on the same points: not built again
+        return cloud
 
     @classmethod
     def empty(cls) -> Cloud:
@@ -129,11 +131,8 @@ class Cloud:
 
     def moved(self, pose: np.ndarray) -> Cloud:
         """The cloud in the frame in which its own frame has the planar ``pose`` (x, y, yaw)."""
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return Cloud(
-            self.points @ R.T + np.array([pose[0], pose[1], 0.0]), self.normals @ R.T, self.oriented
-        )
+        turned = _moved(self.normals, np.array([0.0, 0.0, pose[2]]))
+        return Cloud(_moved(self.points, pose), turned, self.oriented)
 
     def thinned(self, every: int) -> Cloud:
         """Every ``every``-th point."""
@@ -175,13 +174,14 @@ def _means(values: np.ndarray, inverse: np.ndarray, counts: np.ndarray) -> np.nd
     return sums / counts[:, None]
 
 
-def _normals(points: np.ndarray, params: RegistrationParams) -> np.ndarray:
+def _normals(points: np.ndarray, params: RegistrationParams,
+             grid: PointGrid | None = None) -> np.ndarray:  # fmt: skip
     """Unit normals (N, 3) from the principal axes of each point's nearest neighbours within
     ``_NORMAL_REACH`` voxels; zero where fewer than ``_MIN_NEIGHBOURS`` lie that close (such a
     point is still matched as a source point, but no source point is matched to it)."""
     reach = _NORMAL_REACH * params.voxel_m
     k = min(params.neighbours, len(points))
-    index = PointGrid(points).query(points, k, reach)
+    index = (PointGrid(points) if grid is None else grid).query(points, k, reach)
     normals = np.zeros_like(points)
     _plane_normals(points, index, _MIN_NEIGHBOURS, normals)
     return normals
