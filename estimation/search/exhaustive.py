@@ -165,6 +165,51 @@ class SearchResult:
     def is_dominant(self, dominance_ratio: float) -> bool:
         return self.peak_ratio >= dominance_ratio
 
+    def dominant_given(
+        self, predicted: np.ndarray, covariance: np.ndarray, params: SearchParams
+    ) -> bool:
+        """Whether the peak is still the dominant one once each pose is weighed by a Gaussian
+        prediction of it: ``predicted`` (x, y, yaw) with ``covariance`` (3, 3) in its tangent
+        space (a graph's relative pose). The best pose of P(T)·N(T; predicted, covariance)
+        must lie in this search's peak (``params``' peak radii) and stand out by
+        ``params.dominance_ratio``. A room that repeats itself (a hall's trusses every
+        3.65 m along a plain wall) gives the scores modes one period apart that only chance
+        tells apart; the prediction tells them apart, and a peak it finds unlikely beside
+        another mode is no measurement to take."""
+        predicted = np.asarray(predicted, dtype=np.float64)
+        covariance = np.asarray(covariance, dtype=np.float64)
+        if predicted.shape != (3,) or covariance.shape != (3, 3):
+            raise EstimationError("a prediction is a pose (3,) with a 3x3 covariance")
+        if not (np.isfinite(predicted).all() and np.isfinite(covariance).all()):
+            raise EstimationError("a prediction must be finite")
+        steps = np.array(lattice_steps(self.x_m, self.y_m, self.yaw_rad))
+        # A cell's own spread keeps a (near) singular prediction usable.
+        information = np.linalg.inv(0.5 * (covariance + covariance.T) + np.diag(steps**2))
+        c, s = math.cos(predicted[2]), math.sin(predicted[2])
+        dx = (self.x_m - predicted[0])[None, :]
+        dy = (self.y_m - predicted[1])[:, None]
+        u, v = c * dx + s * dy, c * dy - s * dx  # (Y, X), in the predicted pose's axes
+        w = np.remainder(self.yaw_rad - predicted[2] + math.pi, 2 * math.pi) - math.pi
+        w = w[:, None, None]
+        squared = (information[0, 0] * u**2 + 2 * information[0, 1] * u * v
+                   + information[1, 1] * v**2)[None] + w * (
+                   2 * information[0, 2] * u + 2 * information[1, 2] * v
+                   + information[2, 2] * w)  # fmt: skip
+        with np.errstate(divide="ignore"):
+            log_p = np.log(np.asarray(self.prob, dtype=np.float64)) - 0.5 * squared
+        top = float(log_p.max())
+        if not math.isfinite(top):
+            return False
+        weighed = np.exp(log_p - top)
+        pdf = PosePdf(self.x_m, self.y_m, self.yaw_rad, weighed / weighed.sum())
+        radii = (params.peak_radius_m, params.peak_radius_rad)
+        best, own = pdf.best_pose(refine=False), self.lattice_pose
+        return (
+            math.hypot(best[0] - own[0], best[1] - own[1]) <= radii[0] + 1e-9
+            and abs(math.remainder(best[2] - own[2], 2 * math.pi)) <= radii[1] + 1e-9
+            and pdf.peak_ratio(*radii) >= params.dominance_ratio
+        )
+
     def modes(self, count: int, radius_m: float, radius_rad: float) -> list[np.ndarray]:
         """Up to ``count`` poses (x, y, yaw): the refined best pose, then the most probable
         lattice poses each farther than ``radius_m`` or ``radius_rad`` from every one before

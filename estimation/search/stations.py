@@ -404,7 +404,10 @@ def loop_closures(
             result, on_edge = _search_near(local, global_, search, predicted, side, reach)
         except EstimationError:
             continue
-        dominant = result.is_dominant(search.dominance_ratio) and not on_edge
+        # Dominant on its own and beside the prediction: in a room that repeats itself the
+        # scores alone pick one of the repeats by chance.
+        dominant = (result.is_dominant(search.dominance_ratio) and not on_edge
+                    and result.dominant_given(predicted, uncertainty, search))  # fmt: skip
         overlap = overlap_fraction(local, global_, result.pose)
         refined = _Refined(np.asarray(result.pose, dtype=float), None, None, False)
         use = False

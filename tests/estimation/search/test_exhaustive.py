@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -395,3 +396,97 @@ def test_large_pdfs_are_valid_posepdfs(building: tuple[Band, object], beta: floa
     pdf = result.pdf  # PosePdf checks the sum to 1e-6, non-negativity, the lattices
     assert pdf.prob.shape == (360, 160, 160)
     assert pdf.best_index() == result.best_index
+
+
+# -- dominance beside a prediction --------------------------------------------------------------
+
+
+def two_mode_result(strong_x: float = 3.0, weak_share: float = 0.2) -> SearchResult:
+    """A PDF over x −2…5 m, y −1…1 m, yaw ±5° with a strong mode at (``strong_x``, 0, 0) and
+    one ``weak_share`` as high at the origin."""
+    x_m, y_m = np.round(np.arange(-2.0, 5.0001, 0.1), 6), np.round(np.arange(-1.0, 1.0001, 0.1), 6)
+    yaw_rad = np.radians(np.arange(-5.0, 5.5, 1.0))
+    yaw, y, x = np.meshgrid(yaw_rad, y_m, x_m, indexing="ij")
+
+    def bump(cx: float) -> np.ndarray:
+        return np.exp(-0.5 * (((x - cx) / 0.1) ** 2 + (y / 0.1) ** 2 + (yaw / 0.02) ** 2))
+
+    prob = (bump(strong_x) + weak_share * bump(0.0)).astype(np.float32)
+    prob /= prob.sum()
+    best = np.unravel_index(int(np.argmax(prob)), prob.shape)
+    t, iy, ix = (int(i) for i in best)
+    pose = np.array([x_m[ix], y_m[iy], yaw_rad[t]])
+    return SearchResult(x_m=x_m, y_m=y_m, yaw_rad=yaw_rad, scores=None, prob=prob, beta=1.0,
+                        best_index=(t, iy, ix), best_score=0.0, pose=pose,
+                        covariance=np.diag([0.01, 0.01, 4e-4]), peak_ratio=5.0,
+                        seconds=0.0)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("predicted", "sigma_m", "expected"),
+    [
+        pytest.param([0.0, 0.0, 0.0], 1.0, False, id="prediction-at-the-weak-mode"),
+        pytest.param([0.0, 0.0, 0.0], 100.0, True, id="a-prediction-that-says-nothing"),
+        pytest.param([3.0, 0.0, 0.0], 1.0, True, id="prediction-at-the-peak"),
+        pytest.param([1.5, 0.0, 0.0], 1.0, True, id="prediction-halfway"),
+        pytest.param([1.0, 0.0, 0.0], 1.0, False, id="nearer-the-weak-mode: 5x is too little"),
+    ],
+)
+def test_a_peak_must_stay_dominant_beside_the_prediction(
+    predicted: list[float], sigma_m: float, expected: bool
+) -> None:
+    result = two_mode_result()
+    covariance = np.diag([sigma_m**2, sigma_m**2, math.radians(5.0) ** 2])
+    assert result.dominant_given(np.array(predicted), covariance, SearchParams()) is expected
+
+
+def test_the_prediction_is_taken_in_its_own_axes() -> None:
+    """A prediction turned 90° whose uncertainty lies along its own x (the world's y) does not
+    excuse a peak 3 m away along the world's x."""
+    result = two_mode_result()
+    along_own_x = np.diag([100.0**2, 0.5**2, math.radians(5.0) ** 2])
+    turned = np.array([0.0, 0.0, math.pi / 2])
+    result_turned = dataclasses.replace(result, yaw_rad=result.yaw_rad + math.pi / 2)
+    assert not result_turned.dominant_given(turned, along_own_x, SearchParams())
+    assert result.dominant_given(np.zeros(3), along_own_x, SearchParams())
+
+
+def test_a_prediction_breaks_the_tie_of_a_repeating_corridor() -> None:
+    """Pillars every 3.6 m along a plain corridor: a 2 m view matches every repeat alike, so
+    the scores alone are not dominant; with the robot's prediction (σ 1 m) the repeat it is
+    at wins, and a prediction one repeat away refuses the peak the scores picked."""
+    period = 3.6
+    scene = corridor(22.0, 2.4)
+    pillars = [[1.0 + period * k, 0.35, 0.4, 0.4, 0.0] for k in range(6)]
+    scene = dataclasses.replace(scene, boxes=np.array(pillars))
+    global_ = rasterise(scene, np.zeros(3), (0.0, -0.5), (34, 220), 0.1)
+    truth = np.array([8.2 + 0.05, 1.2, 0.02])
+    local = local_view(scene, truth, 2.0, 0.1, np.random.default_rng(4), noise=0.02)
+    params = SearchParams()
+    result = search(local, global_, params, window_m=(2.0, 16.0, 0.8, 1.6))
+    assert not result.is_dominant(params.dominance_ratio)
+    picked = result.lattice_pose
+    covariance = np.diag([1.0, 1.0, math.radians(3.0) ** 2])
+    assert result.dominant_given(picked, covariance, params)
+    repeat = picked + np.array([period if picked[0] < 9.0 else -period, 0.0, 0.0])
+    assert not result.dominant_given(repeat, covariance, params)
+
+
+@pytest.mark.parametrize(
+    ("predicted", "covariance"),
+    [
+        (np.zeros(2), np.eye(3)),
+        (np.zeros(3), np.eye(2)),
+        (np.array([0.0, math.nan, 0.0]), np.eye(3)),
+        (np.zeros(3), np.full((3, 3), math.inf)),
+    ],
+)
+def test_a_bad_prediction_is_refused(predicted: np.ndarray, covariance: np.ndarray) -> None:
+    with pytest.raises(EstimationError, match="prediction"):
+        two_mode_result().dominant_given(predicted, covariance, SearchParams())
+
+
+def test_a_pdf_without_mass_is_never_dominant() -> None:
+    result = two_mode_result()
+    empty = dataclasses.replace(result, prob=np.zeros_like(result.prob))
+    assert not empty.dominant_given(np.zeros(3), np.eye(3), SearchParams())
