@@ -11,7 +11,7 @@ mission goes, from the same code.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -128,8 +128,18 @@ class EventMaker:
         if reference in in_dwell and mapper in in_dwell:
             ka = pose_key(reference, in_dwell[reference].index)
             kc = pose_key(mapper, in_dwell[mapper].index)
-            seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config))
-            seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config))
+            # The other robots' beacons where the estimate places them: a third robot between
+            # or beside the two shows its beacon too (generated building 103: a's sweeps took
+            # c's beacon, 2.6 m off, for b's, 5 m off, at six stations in a row).
+            third = [pose_key(r, int(i)) for r, i in entry["poses"].items()
+                     if r not in (reference, mapper)]  # fmt: skip
+            seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config),
+                             [_predict(builder, ka, k, config) for k in third])  # fmt: skip
+            seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config),
+                             [_predict(builder, kc, k, config) for k in third])  # fmt: skip
+            if ka not in builder.guesses or kc not in builder.guesses:
+                seen_a, seen_c = _agreeing(in_dwell[reference].detections,
+                                           in_dwell[mapper].detections)  # fmt: skip
             if seen_a is None or seen_c is None:
                 self.unseen.append(
                     f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
@@ -171,20 +181,42 @@ def build_events(
 
 
 def _choose(
-    detections: list[BeaconDetection], predicted: tuple[float, float] | None
+    detections: list[BeaconDetection],
+    predicted: tuple[float, float] | None,
+    others: Sequence[tuple[float, float] | None] = (),
 ) -> BeaconDetection | None:
-    """The detection that is the other robot's beacon: nearest the prediction, or the only one."""
+    """The detection that is the other robot's beacon: nearest the prediction, or the only one.
+    ``others``: where the estimate places the beacons of the robots that are not party to the
+    observation (range, bearing; None where it places none); a detection nearer one of them
+    than the prediction is that robot's beacon, not the partner's."""
     if not detections:
         return None
     if predicted is None:
         return detections[0] if len(detections) == 1 else max(detections, key=lambda d: d.quality)
-    a, alpha = predicted
-    return min(
-        detections,
-        key=lambda d: math.hypot(
-            d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi)
-        ),
-    )
+
+    def apart(d: BeaconDetection, where: tuple[float, float]) -> float:
+        a, alpha = where
+        return math.hypot(d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi))
+
+    placed = [o for o in others if o is not None]
+    ours = [d for d in detections if all(apart(d, predicted) <= apart(d, o) for o in placed)]
+    return min(ours, key=lambda d: apart(d, predicted)) if ours else None
+
+
+def _agreeing(
+    seen_a: list[BeaconDetection], seen_c: list[BeaconDetection]
+) -> tuple[BeaconDetection | None, BeaconDetection | None]:
+    """With nothing to predict the partner's beacon by (its first observation): of each robot's
+    detections, the two whose ranges agree best. Each measures the same distance between the
+    beacons (the graph's s1/s2 gate); a third robot's beacon or a reflective sign seldom lies
+    at the same range (generated building 104: three robots placed side by side, a took c's
+    beacon for b's and the pair never tied)."""
+    if not seen_a or not seen_c:
+        return None, None
+    pairs = [(abs(a.range_m - c.range_m), -(a.quality + c.quality), i, j)
+             for i, a in enumerate(seen_a) for j, c in enumerate(seen_c)]  # fmt: skip
+    _, _, i, j = min(pairs)
+    return seen_a[i], seen_c[j]
 
 
 def _predict(

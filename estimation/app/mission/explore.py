@@ -57,6 +57,9 @@ _FRONTIER_COST = 200.0
 _LOOK_FIRST_CELLS, _LOOK_FIRST_COST = 200, 300.0
 #: Two poses closer than this (m, rad) are the same pose.
 _SAME_M, _SAME_RAD = 0.3, math.radians(30.0)
+#: A scan pose is not planned where another robot stands this close (beyond its footprint) to
+#: the line between the beacons; a robot this close to a pose is the robot standing there.
+_BESIDE_M, _SAME_ROBOT_M = 0.3, 0.1
 #: A frontier is given up after this many stations in a row that neither brought the robots
 #: this much nearer nor grew the known floor within this radius of it by this much.
 _PATIENCE = 3
@@ -257,6 +260,25 @@ def _reachable_frontiers(view: MapView, from_xy: list[np.ndarray]) -> list[tuple
     return out
 
 
+def _in_the_way(a: np.ndarray, b: np.ndarray, robots: list[np.ndarray],
+                radius_m: float) -> bool:  # fmt: skip
+    """Whether a robot other than the one at ``a`` stands within ``radius_m`` plus
+    ``_BESIDE_M`` of the line from ``a`` to ``b``: its body hides the beacon, or its own beacon
+    beside the line is taken for it (generated building 103: c stood between a and b for six
+    scan poses in a row, and a's sweeps showed c's beacon)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    d = b - a
+    length2 = float(d @ d)
+    for robot in robots:
+        p = np.asarray(robot[:2], dtype=float)
+        if math.dist(p, a) < _SAME_ROBOT_M:
+            continue  # the robot at a itself
+        t = 0.0 if length2 == 0.0 else float(np.clip((p - a) @ d / length2, 0.0, 1.0))
+        if math.dist(p, a + t * d) < radius_m + _BESIDE_M:
+            return True
+    return False
+
+
 def _among(frontier: Frontier, centroids: list[np.ndarray]) -> bool:
     """The frontier is one of those with these centroids (within 1 m: frontiers move)."""
     return any(math.dist(frontier.centroid_xy, c) < 1.0 for c in centroids)
@@ -378,6 +400,8 @@ class Explorer:
             if not view.space.is_free(xy) or not np.isfinite(view.at(reachable, xy)):
                 continue
             if any(math.dist(xy, p[:2]) < spacing for p in others):
+                continue
+            if _in_the_way(reference[:2], xy, others, self.config.robot.footprint_radius_m):
                 continue
             if fresh and self._taken(candidate):
                 continue

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _motion
+from estimation.app.events import EventMaker, _agreeing, _choose, _motion
 from estimation.posegraph.events import Move, Start
 from estimation.posegraph.graph import odometry_covariance
 from estimation.posegraph.keys import pose_key
 from sensors.geometry import se2
+from sensors.scan3d.beacon import BeaconDetection
 from sensors.trajio import pose_at
 
 SPEED_M_S, TURN_RAD_S, RATE_HZ = 0.4, math.radians(45.0), 10.0
@@ -115,3 +116,46 @@ def test_a_move_entry_becomes_a_move_with_its_motion() -> None:
     assert held == []
     assert maker.held_back == 1
     assert maker.pending["b"][0].motion == (0.0, 0.0)
+
+
+def detection(range_m: float, bearing_deg: float, quality: float = 0.9) -> BeaconDetection:
+    bearing = math.radians(bearing_deg)
+    centre = np.array([range_m * math.cos(bearing), range_m * math.sin(bearing), 0.6])
+    return BeaconDetection(range_m, bearing, centre, 20, 0.005, quality)
+
+
+def test_the_detection_nearest_the_prediction_is_the_partner() -> None:
+    near, far = detection(5.0, 93.0), detection(2.6, 106.6)
+    assert _choose([far, near], (4.95, math.radians(92.7))) is near
+    assert _choose([], (4.95, math.radians(92.7))) is None
+    # Without an estimate: the only one, or the best fitted of several.
+    assert _choose([far], None) is far
+    assert _choose([detection(3.0, 10.0, 0.4), near], None) is near
+
+
+def test_a_third_robots_beacon_is_not_taken_for_the_partners() -> None:
+    """Robot c stands 2.6 m from a, 14° beside the line to b; b's beacon is not seen. Nearest
+    the prediction of b is c's beacon, and the estimate places c there: it is not b's."""
+    partner, third = (4.95, math.radians(92.7)), (2.62, math.radians(106.6))
+    beacon_c = detection(2.6, 106.3)
+    assert _choose([beacon_c], partner) is beacon_c  # what a two-robot chooser would take
+    assert _choose([beacon_c], partner, [third]) is None
+    beacon_b = detection(4.9, 93.1)
+    assert _choose([beacon_c, beacon_b], partner, [third]) is beacon_b
+    # A robot the estimate does not place yet rules nothing out.
+    assert _choose([beacon_c], partner, [None]) is beacon_c
+
+
+def test_a_first_observation_takes_the_detections_whose_ranges_agree() -> None:
+    """No estimate of the partner yet: a sees b at 3.0 m and c at 2.2 m (c's beacon fits
+    better); b sees a at 3.02 m and c at 1.4 m. Only a–b agree on the distance."""
+    a_sees = [detection(2.2, 40.0, quality=0.95), detection(3.0, -10.0, quality=0.6)]
+    b_sees = [detection(1.4, 80.0, quality=0.9), detection(3.02, 170.0, quality=0.5)]
+    seen_a, seen_b = _agreeing(a_sees, b_sees)
+    assert seen_a is a_sees[1]
+    assert seen_b is b_sees[1]
+    assert _agreeing([], b_sees) == (None, None)
+    assert _agreeing(a_sees, []) == (None, None)
+    # Equal agreement: the better fitted pair.
+    twins = [detection(3.0, 0.0, quality=0.2), detection(3.0, 20.0, quality=0.8)]
+    assert _agreeing(twins, [detection(3.0, 0.0)])[0] is twins[1]

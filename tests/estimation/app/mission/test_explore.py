@@ -439,3 +439,30 @@ def test_lines_of_sight_ignore_the_robots_where_they_stand_now_not_where_they_st
                     robots_xy=np.array([*now, [3.0, 2.0]]))  # fmt: skip
     assert there.geometry.sees_beacon(observer, target)
     assert there.geometry.sees_beacon(target, observer)
+
+
+def test_no_scan_pose_is_planned_with_a_third_robot_between_the_beacons(view: MapView) -> None:
+    """A third robot on the line from the reference to the best scan pose hides the beacon (or
+    shows its own in its place): the next best pose clear of it is planned instead."""
+    reference = np.array([2.5, 2.0, 0.0])
+    mapper = np.array([1.0, 1.0, 0.0])
+    first = Explorer(CONFIG, (1.5, 3.5)).scan_pose(view, reference, mapper, [reference], None, [])
+    assert first is not None
+    between = reference[:2] + 0.5 * (first.pose[:2] - reference[:2])
+    third = np.array([between[0], between[1], 0.0])
+    clear = Explorer(CONFIG, (1.5, 3.5)).scan_pose(view, reference, mapper, [reference, third],
+                                                   None, [])  # fmt: skip
+    assert clear is not None
+    assert math.dist(clear.pose[:2], first.pose[:2]) > 0.1
+    radius = CONFIG.robot.footprint_radius_m
+    assert not explore._in_the_way(reference[:2], clear.pose[:2], [reference, third], radius)
+
+
+def test_a_robot_is_in_the_way_only_beside_the_segment_between_the_beacons() -> None:
+    a, b, radius = np.array([0.0, 0.0]), np.array([4.0, 0.0]), 0.3
+    assert explore._in_the_way(a, b, [np.array([2.0, 0.5])], radius)  # 0.5 < 0.3 + 0.3
+    assert not explore._in_the_way(a, b, [np.array([2.0, 0.7])], radius)
+    assert not explore._in_the_way(a, b, [np.array([5.0, 0.0])], radius)  # 1 m behind b
+    assert explore._in_the_way(a, b, [np.array([4.5, 0.0])], radius)  # behind b, in reach
+    assert not explore._in_the_way(a, b, [a.copy()], radius)  # the robot at a itself
+    assert not explore._in_the_way(a, a, [np.array([1.0, 0.0])], radius)  # 1 m from a point
