@@ -466,3 +466,24 @@ def test_a_robot_is_in_the_way_only_beside_the_segment_between_the_beacons() -> 
     assert explore._in_the_way(a, b, [np.array([4.5, 0.0])], radius)  # behind b, in reach
     assert not explore._in_the_way(a, b, [a.copy()], radius)  # the robot at a itself
     assert not explore._in_the_way(a, a, [np.array([1.0, 0.0])], radius)  # 1 m from a point
+
+
+def test_a_wall_beside_a_robot_standing_now_still_hides_a_beacon_beyond_it() -> None:
+    """Around a robot standing now the 3D cells are not tested (its body, its beacon at every
+    heading it turned to); a wall 0.42 m from it still is, through the floor map."""
+    i, j, k = np.meshgrid(np.arange(60), np.arange(40), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    wall = cells[:, 0] == 30  # x 3.0-3.1 m, floor to ceiling
+    params = GridParams(resolution_m=RES)
+    grid = OccupancyGrid.from_cells(
+        params, cells, np.where(wall, params.logodds_max, params.logodds_min)
+    )
+    observer = np.array([2.58, 2.0, 0.0])  # its centre 0.42 m from the wall
+    target = np.array([4.6, 2.0, math.pi])
+    beside = MapView(grid, CONFIG, np.array([observer[:2]]), robots_xy=np.array([observer[:2]]))
+    assert not beside.geometry.sees_beacon(observer, target)
+    assert not beside.geometry.sees_beacon(target, observer)
+    # Along the wall, on the robot's side of it, the beacon is in view.
+    along = np.array([2.5, 0.5, math.pi / 2])
+    assert beside.geometry.sees_beacon(observer, along)
+    assert beside.geometry.sees_beacon(along, observer)
