@@ -21,8 +21,9 @@ from estimation.app.config import Config
 from estimation.app.dataset import Dataset, Progress, RobotStream, Sweep, sweep_in
 from estimation.app.rig import T_robot_scanner, beacon_parameters, graph_settings
 from estimation.posegraph.events import Event, Move, Observe, Start
-from estimation.posegraph.graph import GraphBuilder
+from estimation.posegraph.graph import GraphBuilder, GraphSettings
 from estimation.posegraph.keys import pose_key
+from estimation.posegraph.mutual import gap_sigma, separations
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
@@ -133,13 +134,15 @@ class EventMaker:
             # c's beacon, 2.6 m off, for b's, 5 m off, at six stations in a row).
             third = [pose_key(r, int(i)) for r, i in entry["poses"].items()
                      if r not in (reference, mapper)]  # fmt: skip
-            seen_a = _choose(in_dwell[reference].detections, _predict(builder, ka, kc, config),
-                             [_predict(builder, ka, k, config) for k in third])  # fmt: skip
-            seen_c = _choose(in_dwell[mapper].detections, _predict(builder, kc, ka, config),
-                             [_predict(builder, kc, k, config) for k in third])  # fmt: skip
-            if ka not in builder.guesses or kc not in builder.guesses:
-                seen_a, seen_c = _agreeing(in_dwell[reference].detections,
-                                           in_dwell[mapper].detections)  # fmt: skip
+            to_c, to_a = _predict(builder, ka, kc, config), _predict(builder, kc, ka, config)
+            seen_a, seen_c = _pair(
+                _ours(in_dwell[reference].detections, to_c,
+                      [_predict(builder, ka, k, config) for k in third]),
+                _ours(in_dwell[mapper].detections, to_a,
+                      [_predict(builder, kc, k, config) for k in third]),
+                None if to_c is None or to_a is None else (to_c, to_a),
+                builder.settings,
+            )  # fmt: skip
             if seen_a is None or seen_c is None:
                 self.unseen.append(
                     f"{reference}{in_dwell[reference].index}–{mapper}{in_dwell[mapper].index}"
@@ -180,42 +183,59 @@ def build_events(
     return maker.result()
 
 
-def _choose(
+def _ours(
     detections: list[BeaconDetection],
     predicted: tuple[float, float] | None,
-    others: Sequence[tuple[float, float] | None] = (),
-) -> BeaconDetection | None:
-    """The detection that is the other robot's beacon: nearest the prediction, or the only one.
-    ``others``: where the estimate places the beacons of the robots that are not party to the
-    observation (range, bearing; None where it places none); a detection nearer one of them
-    than the prediction is that robot's beacon, not the partner's."""
-    if not detections:
-        return None
+    others: Sequence[tuple[float, float] | None],
+) -> list[BeaconDetection]:
+    """The detections that may be the partner's beacon: with a prediction of it, those no
+    nearer the predicted beacon of a robot not party to the observation (``others``: range,
+    bearing; None where the estimate places none) than the partner's."""
     if predicted is None:
-        return detections[0] if len(detections) == 1 else max(detections, key=lambda d: d.quality)
-
-    def apart(d: BeaconDetection, where: tuple[float, float]) -> float:
-        a, alpha = where
-        return math.hypot(d.range_m - a, a * math.remainder(d.bearing_rad - alpha, 2 * math.pi))
-
+        return list(detections)
     placed = [o for o in others if o is not None]
-    ours = [d for d in detections if all(apart(d, predicted) <= apart(d, o) for o in placed)]
-    return min(ours, key=lambda d: apart(d, predicted)) if ours else None
+    return [d for d in detections if all(_apart(d, predicted) <= _apart(d, o) for o in placed)]
 
 
-def _agreeing(
-    seen_a: list[BeaconDetection], seen_c: list[BeaconDetection]
+def _apart(detection: BeaconDetection, where: tuple[float, float]) -> float:
+    """How far a detection lies from a predicted beacon (range, and bearing times range)."""
+    a, alpha = where
+    return math.hypot(
+        detection.range_m - a, a * math.remainder(detection.bearing_rad - alpha, 2 * math.pi)
+    )
+
+
+def _pair(
+    seen_a: list[BeaconDetection],
+    seen_c: list[BeaconDetection],
+    predicted: tuple[tuple[float, float], tuple[float, float]] | None,
+    settings: GraphSettings,
 ) -> tuple[BeaconDetection | None, BeaconDetection | None]:
-    """With nothing to predict the partner's beacon by (its first observation): of each robot's
-    detections, the two whose ranges agree best. Each measures the same distance between the
-    beacons (the graph's s1/s2 gate); a third robot's beacon or a reflective sign seldom lies
-    at the same range (generated building 104: three robots placed side by side, a took c's
-    beacon for b's and the pair never tied)."""
+    """The two robots' detections of each other's beacon (A's of C's, C's of A's), or Nones.
+
+    Both measure the distance between the beacons (s1, s2: the graph's gate), so pairs that
+    agree within the gate come first: a third robot's beacon or a reflective sign seldom lies
+    at the distance the other robot measures. Among those, the pair nearest where the estimate
+    so far places the beacons (``predicted``: range and bearing of C's beacon from A, of A's
+    from C), or without an estimate the best agreeing, then the best fitted. With no agreeing
+    pair the nearest predicted one is taken, and the gate refuses it (generated building 103,
+    three robots: c's beacon, 2.6 m from a, taken for b's, 5 m off, at six scan poses in a row;
+    building 104: three robots placed side by side never tied a to b)."""
     if not seen_a or not seen_c:
         return None, None
-    pairs = [(abs(a.range_m - c.range_m), -(a.quality + c.quality), i, j)
-             for i, a in enumerate(seen_a) for j, c in enumerate(seen_c)]  # fmt: skip
-    _, _, i, j = min(pairs)
+    s = settings
+    rows = []
+    for i, a in enumerate(seen_a):
+        for j, c in enumerate(seen_c):
+            z = (a.range_m, a.bearing_rad, c.range_m, c.bearing_rad)
+            s1, s2 = separations(*z, s.beacon_offset_m)
+            spread = gap_sigma(*z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad)
+            gap = abs(float(s1) - float(s2))
+            agree = gap <= s.gate_sigmas * float(spread)
+            near = gap if predicted is None else (
+                _apart(a, predicted[0]) + _apart(c, predicted[1]))  # fmt: skip
+            rows.append((not agree, near, -(a.quality + c.quality), i, j))
+    _, _, _, i, j = min(rows)
     return seen_a[i], seen_c[j]
 
 

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _agreeing, _choose, _motion
+from estimation.app.events import EventMaker, _motion, _ours, _pair
 from estimation.posegraph.events import Move, Start
-from estimation.posegraph.graph import odometry_covariance
+from estimation.posegraph.graph import GraphSettings, odometry_covariance
 from estimation.posegraph.keys import pose_key
+from estimation.posegraph.mutual import measurements
 from sensors.geometry import se2
 from sensors.scan3d.beacon import BeaconDetection
 from sensors.trajio import pose_at
@@ -118,44 +119,58 @@ def test_a_move_entry_becomes_a_move_with_its_motion() -> None:
     assert maker.pending["b"][0].motion == (0.0, 0.0)
 
 
-def detection(range_m: float, bearing_deg: float, quality: float = 0.9) -> BeaconDetection:
-    bearing = math.radians(bearing_deg)
-    centre = np.array([range_m * math.cos(bearing), range_m * math.sin(bearing), 0.6])
-    return BeaconDetection(range_m, bearing, centre, 20, 0.005, quality)
+def detection(range_m: float, bearing_rad: float, quality: float = 0.9) -> BeaconDetection:
+    centre = np.array([range_m * math.cos(bearing_rad), range_m * math.sin(bearing_rad), 1.6])
+    return BeaconDetection(range_m, bearing_rad, centre, 20, 0.005, quality)
 
 
-def test_the_detection_nearest_the_prediction_is_the_partner() -> None:
-    near, far = detection(5.0, 93.0), detection(2.6, 106.6)
-    assert _choose([far, near], (4.95, math.radians(92.7))) is near
-    assert _choose([], (4.95, math.radians(92.7))) is None
-    # Without an estimate: the only one, or the best fitted of several.
-    assert _choose([far], None) is far
-    assert _choose([detection(3.0, 10.0, 0.4), near], None) is near
+SETTINGS = GraphSettings()
+D = SETTINGS.beacon_offset_m
+
+
+def seen(pose: list[float]) -> tuple[BeaconDetection, BeaconDetection]:
+    """A's detection of C's beacon and C's of A's, C's scanner at ``pose`` in A's frame."""
+    a, alpha, c, gamma = measurements(np.array(pose), D)
+    return detection(a, alpha), detection(c, gamma)
+
+
+def test_the_pair_that_agrees_and_lies_nearest_the_prediction_is_taken() -> None:
+    """b stands 5 m ahead of a, c 2.6 m away and 14 degrees beside the line (both facing a);
+    a sees both beacons, b sees a's."""
+    a_sees_b, b_sees_a = seen([4.95, 0.2, math.pi])
+    a_sees_c, _ = seen([2.5, 0.8, math.pi - 0.3])
+    predicted = ((a_sees_b.range_m + 0.1, a_sees_b.bearing_rad + 0.02),
+                 (b_sees_a.range_m - 0.1, b_sees_a.bearing_rad))  # fmt: skip
+    assert _pair([a_sees_c, a_sees_b], [b_sees_a], predicted, SETTINGS) == (a_sees_b, b_sees_a)
+    # A prediction that points at c's beacon: c's does not agree with b's range, b's does.
+    towards_c = ((a_sees_c.range_m, a_sees_c.bearing_rad), predicted[1])
+    assert _pair([a_sees_c, a_sees_b], [b_sees_a], towards_c, SETTINGS)[0] is a_sees_b
+    # Nothing agrees (b's beacon hidden): the nearest predicted is taken, for the gate to refuse.
+    assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS) == (a_sees_c, b_sees_a)
+    assert _pair([], [b_sees_a], predicted, SETTINGS) == (None, None)
+    assert _pair([a_sees_b], [], predicted, SETTINGS) == (None, None)
+
+
+def test_a_first_observation_takes_the_detections_that_agree() -> None:
+    """No estimate of the partner yet: c's beacon fits better than b's, but only b's agrees
+    with the distance b measures."""
+    a_sees_b, b_sees_a = seen([3.0, -0.5, 2.5])
+    a_sees_c, b_sees_c = seen([1.8, 1.6, -2.0])
+    a_sees_c = detection(a_sees_c.range_m, a_sees_c.bearing_rad, quality=0.99)
+    b_sees_c = detection(b_sees_c.range_m + 1.0, b_sees_c.bearing_rad + 1.0, quality=0.99)
+    chosen = _pair([a_sees_c, a_sees_b], [b_sees_c, b_sees_a], None, SETTINGS)
+    assert chosen == (a_sees_b, b_sees_a)
 
 
 def test_a_third_robots_beacon_is_not_taken_for_the_partners() -> None:
-    """Robot c stands 2.6 m from a, 14° beside the line to b; b's beacon is not seen. Nearest
-    the prediction of b is c's beacon, and the estimate places c there: it is not b's."""
+    """A detection nearer where the estimate places a third robot's beacon than the partner's
+    is the third robot's."""
     partner, third = (4.95, math.radians(92.7)), (2.62, math.radians(106.6))
-    beacon_c = detection(2.6, 106.3)
-    assert _choose([beacon_c], partner) is beacon_c  # what a two-robot chooser would take
-    assert _choose([beacon_c], partner, [third]) is None
-    beacon_b = detection(4.9, 93.1)
-    assert _choose([beacon_c, beacon_b], partner, [third]) is beacon_b
-    # A robot the estimate does not place yet rules nothing out.
-    assert _choose([beacon_c], partner, [None]) is beacon_c
-
-
-def test_a_first_observation_takes_the_detections_whose_ranges_agree() -> None:
-    """No estimate of the partner yet: a sees b at 3.0 m and c at 2.2 m (c's beacon fits
-    better); b sees a at 3.02 m and c at 1.4 m. Only a–b agree on the distance."""
-    a_sees = [detection(2.2, 40.0, quality=0.95), detection(3.0, -10.0, quality=0.6)]
-    b_sees = [detection(1.4, 80.0, quality=0.9), detection(3.02, 170.0, quality=0.5)]
-    seen_a, seen_b = _agreeing(a_sees, b_sees)
-    assert seen_a is a_sees[1]
-    assert seen_b is b_sees[1]
-    assert _agreeing([], b_sees) == (None, None)
-    assert _agreeing(a_sees, []) == (None, None)
-    # Equal agreement: the better fitted pair.
-    twins = [detection(3.0, 0.0, quality=0.2), detection(3.0, 20.0, quality=0.8)]
-    assert _agreeing(twins, [detection(3.0, 0.0)])[0] is twins[1]
+    beacon_c, beacon_b = detection(2.6, math.radians(106.3)), detection(4.9, math.radians(93.1))
+    assert _ours([beacon_c], partner, []) == [beacon_c]  # what a two-robot chooser would take
+    assert _ours([beacon_c], partner, [third]) == []
+    assert _ours([beacon_c, beacon_b], partner, [third]) == [beacon_b]
+    # A robot the estimate does not place yet rules nothing out; nor does anything without a
+    # prediction of the partner.
+    assert _ours([beacon_c], partner, [None]) == [beacon_c]
+    assert _ours([beacon_c], None, [third]) == [beacon_c]
