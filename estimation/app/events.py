@@ -136,12 +136,10 @@ class EventMaker:
                      if r not in (reference, mapper)]  # fmt: skip
             to_c, to_a = _predict(builder, ka, kc, config), _predict(builder, kc, ka, config)
             seen_a, seen_c = _pair(
-                _ours(in_dwell[reference].detections, to_c,
-                      [_predict(builder, ka, k, config) for k in third]),
-                _ours(in_dwell[mapper].detections, to_a,
-                      [_predict(builder, kc, k, config) for k in third]),
-                None if to_c is None or to_a is None else (to_c, to_a),
-                builder.settings,
+                in_dwell[reference].detections, in_dwell[mapper].detections,
+                None if to_c is None or to_a is None else (to_c, to_a), builder.settings,
+                ([_predict(builder, ka, k, config) for k in third],
+                 [_predict(builder, kc, k, config) for k in third]),
             )  # fmt: skip
             if seen_a is None or seen_c is None:
                 self.unseen.append(
@@ -183,18 +181,18 @@ def build_events(
     return maker.result()
 
 
-def _ours(
-    detections: list[BeaconDetection],
+def _third(
+    detection: BeaconDetection,
     predicted: tuple[float, float] | None,
     others: Sequence[tuple[float, float] | None],
-) -> list[BeaconDetection]:
-    """The detections that may be the partner's beacon: with a prediction of it, those no
-    nearer the predicted beacon of a robot not party to the observation (``others``: range,
-    bearing; None where the estimate places none) than the partner's."""
+) -> bool:
+    """Whether the estimate places the beacon of a robot not party to the observation
+    (``others``: range, bearing; None where it places none) nearer ``detection`` than the
+    partner's (``predicted``)."""
     if predicted is None:
-        return list(detections)
-    placed = [o for o in others if o is not None]
-    return [d for d in detections if all(_apart(d, predicted) <= _apart(d, o) for o in placed)]
+        return False
+    return any(o is not None and _apart(detection, o) < _apart(detection, predicted)
+               for o in others)  # fmt: skip
 
 
 def _apart(detection: BeaconDetection, where: tuple[float, float]) -> float:
@@ -210,17 +208,22 @@ def _pair(
     seen_c: list[BeaconDetection],
     predicted: tuple[tuple[float, float], tuple[float, float]] | None,
     settings: GraphSettings,
+    others: tuple[list[tuple[float, float] | None], list[tuple[float, float] | None]] = ([], []),
 ) -> tuple[BeaconDetection | None, BeaconDetection | None]:
     """The two robots' detections of each other's beacon (A's of C's, C's of A's), or Nones.
 
     Both measure the distance between the beacons (s1, s2: the graph's gate), so pairs that
     agree within the gate come first: a third robot's beacon or a reflective sign seldom lies
-    at the distance the other robot measures. Among those, the pair nearest where the estimate
-    so far places the beacons (``predicted``: range and bearing of C's beacon from A, of A's
-    from C), or without an estimate the best agreeing, then the best fitted. With no agreeing
-    pair the nearest predicted one is taken, and the gate refuses it (generated building 103,
-    three robots: c's beacon, 2.6 m from a, taken for b's, 5 m off, at six scan poses in a row;
-    building 104: three robots placed side by side never tied a to b)."""
+    at the distance the other robot measures. Then the pairs of which no detection lies nearer
+    a third robot's beacon than the partner's, as the estimate so far places them (``others``:
+    for A, then for C, range and bearing of each robot's beacon not party to the observation,
+    None where it places none): an estimate that has drifted (half a metre, 16° after an
+    untied turn) must not rule out the beacon that agrees. Then the pair nearest where the
+    estimate places the partners' beacons (``predicted``: range and bearing of C's beacon from
+    A, of A's from C), or without an estimate the best agreeing, then the best fitted. With
+    no agreeing pair the nearest predicted one is taken, and the gate refuses it (generated
+    building 103, three robots: c's beacon, 2.6 m from a, taken for b's, 5 m off, at six
+    scan poses in a row; building 104: three robots placed side by side never tied a to b)."""
     if not seen_a or not seen_c:
         return None, None
     s = settings
@@ -232,10 +235,14 @@ def _pair(
             spread = gap_sigma(*z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad)
             gap = abs(float(s1) - float(s2))
             agree = gap <= s.gate_sigmas * float(spread)
-            near = gap if predicted is None else (
-                _apart(a, predicted[0]) + _apart(c, predicted[1]))  # fmt: skip
-            rows.append((not agree, near, -(a.quality + c.quality), i, j))
-    _, _, _, i, j = min(rows)
+            if predicted is None:
+                third, near = False, gap
+            else:
+                third = (_third(a, predicted[0], others[0])
+                         or _third(c, predicted[1], others[1]))  # fmt: skip
+                near = _apart(a, predicted[0]) + _apart(c, predicted[1])
+            rows.append((not agree, third, near, -(a.quality + c.quality), i, j))
+    *_, i, j = min(rows)
     return seen_a[i], seen_c[j]
 
 

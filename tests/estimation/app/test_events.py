@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _motion, _ours, _pair
+from estimation.app.events import EventMaker, _motion, _pair, _third
 from estimation.posegraph.events import Move, Start
 from estimation.posegraph.graph import GraphSettings, odometry_covariance
 from estimation.posegraph.keys import pose_key
@@ -162,15 +162,31 @@ def test_a_first_observation_takes_the_detections_that_agree() -> None:
     assert chosen == (a_sees_b, b_sees_a)
 
 
-def test_a_third_robots_beacon_is_not_taken_for_the_partners() -> None:
-    """A detection nearer where the estimate places a third robot's beacon than the partner's
-    is the third robot's."""
-    partner, third = (4.95, math.radians(92.7)), (2.62, math.radians(106.6))
-    beacon_c, beacon_b = detection(2.6, math.radians(106.3)), detection(4.9, math.radians(93.1))
-    assert _ours([beacon_c], partner, []) == [beacon_c]  # what a two-robot chooser would take
-    assert _ours([beacon_c], partner, [third]) == []
-    assert _ours([beacon_c, beacon_b], partner, [third]) == [beacon_b]
-    # A robot the estimate does not place yet rules nothing out; nor does anything without a
-    # prediction of the partner.
-    assert _ours([beacon_c], partner, [None]) == [beacon_c]
-    assert _ours([beacon_c], None, [third]) == [beacon_c]
+def test_a_third_robots_beacon_ranks_after_the_partners() -> None:
+    """Two agreeing pairs (a sees b's beacon and c's, c standing as far from a as b does):
+    the one whose detection the estimate places nearer c's beacon than b's ranks last. A
+    drifted estimate never rules out the only agreeing pair."""
+    a_sees_b, b_sees_a = seen([3.0, 0.4, math.pi])
+    a_sees_c = detection(a_sees_b.range_m, a_sees_b.bearing_rad + 0.6)
+    to_b = (a_sees_b.range_m, a_sees_b.bearing_rad + 0.35)  # drifted towards c
+    to_c = (a_sees_c.range_m, a_sees_c.bearing_rad)
+    predicted = (to_b, (b_sees_a.range_m, b_sees_a.bearing_rad))
+    # Nearest the drifted prediction is c's beacon; c's predicted place claims it.
+    assert _third(a_sees_c, to_b, [to_c])
+    assert not _third(a_sees_b, to_b, [to_c])
+    pairs = [a_sees_c, a_sees_b], [b_sees_a]
+    assert _pair(*pairs, predicted, SETTINGS)[0] is a_sees_c  # without the third robot
+    assert _pair(*pairs, predicted, SETTINGS, ([to_c], [None]))[0] is a_sees_b
+    # Generated building 104: the estimate (16° off) put a's beacon nearer b's true detection
+    # than b's prediction; b's detection is the only one that agrees, and it is taken.
+    c_sees_b, b_sees_c = seen([3.07, -1.3, 2.2])
+    other = detection(1.79, math.radians(15.7))
+    drifted = ((c_sees_b.range_m + 0.5, c_sees_b.bearing_rad - math.radians(16.0)),
+               (b_sees_c.range_m, b_sees_c.bearing_rad))  # fmt: skip
+    a_placed = (2.62, c_sees_b.bearing_rad + math.radians(7.7))
+    assert _third(c_sees_b, drifted[0], [a_placed])
+    chosen = _pair([other, c_sees_b], [b_sees_c], drifted, SETTINGS, ([a_placed], [None]))
+    assert chosen == (c_sees_b, b_sees_c)
+    # Nothing ruled out without a prediction, or by a robot the estimate does not place.
+    assert not _third(a_sees_c, None, [to_c])
+    assert not _third(a_sees_c, to_b, [None])
