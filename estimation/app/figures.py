@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -40,7 +40,9 @@ _WINDOW_COLOR = "#2aa6d6"
 _FACETS = 80
 
 
-def _new_figure(width_in: float, height_in: float, layout: str | None = "constrained") -> Figure:
+def _new_figure(
+    width_in: float, height_in: float, layout: Literal["constrained"] | None = "constrained"
+) -> Figure:
     """A figure on the Agg canvas; ``layout`` None places the axes where they are added (the
     constrained layout measures every label once more, a third of a simple figure's time)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -378,7 +380,7 @@ def render_search_pdf(picture: Any, pose: np.ndarray, path: Path | str, *, title
     surface = _block_max(relative, step_y, step_x)
     # Placed by hand: a result draws six of these, and the constrained layout cost 40 % more.
     figure = _new_figure(13.0, 5.6, layout=None)
-    ax_pdf = figure.add_axes((0.0, 0.02, 0.47, 0.84), projection="3d")
+    ax_pdf: Any = figure.add_axes((0.0, 0.02, 0.47, 0.84), projection="3d")
     if surface.size:
         gx, gy = np.meshgrid(xs, ys)
         ax_pdf.plot_surface(gx, gy, surface, cmap="viridis", linewidth=0, antialiased=False,
