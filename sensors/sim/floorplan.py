@@ -386,7 +386,9 @@ def _doors(rooms: list[PlanRoom], rng: np.random.Generator, min_door_m: float) -
         widest = min(hi - lo - 2 * JAMB_M, 2.4 if big else 1.3)
         width = _q(float(rng.uniform(min_door_m, max(min_door_m, widest))))
         width = max(width, _q(min_door_m + GRID_M / 2))
-        start = _q(float(rng.uniform(lo + JAMB_M, hi - JAMB_M - width)))
+        # A wall usable within _TOL may be a hair shorter than the door and its jambs (seed
+        # 210 with 15 rooms: 1e-6 m); the door then starts at the first jamb.
+        start = _q(float(rng.uniform(lo + JAMB_M, max(lo + JAMB_M, hi - JAMB_M - width))))
         room = rooms[i].footprint
         a0, a1 = room[wall], room[(wall + 1) % len(room)]
         along = _unit(a0, a1)

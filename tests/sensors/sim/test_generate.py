@@ -242,3 +242,15 @@ def test_write_replaces_only_its_own_files(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["folder.yaml", "link.yaml", "mine.yaml",
                                                           "nested"]  # fmt: skip
     assert sorted(p.name for p in (tmp_path / "nested").iterdir()) == ["b.yaml"]  # no leftovers
+
+
+@pytest.mark.parametrize("rooms", [3, 15])
+def test_explicit_room_counts_give_loadable_buildings(rooms: int, tmp_path: Path) -> None:
+    """Seed 210 with 15 rooms shared a wall 1e-6 m shorter than a door and its jambs, and the
+    door's start was drawn from an empty range."""
+    for seed in (210, *range(200, 206)):
+        building = generate_building(seed, rooms)
+        assert len(building.rooms) == rooms
+        path = tmp_path / f"{seed}_{rooms}.yaml"
+        path.write_text(building.text, encoding="utf-8")
+        assert load_world(path) == building.world
