@@ -12,6 +12,8 @@ from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
+from estimation.search import stations as stations_module
+from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
 from estimation.search.station_maps import (
     Dwell,
@@ -193,6 +195,24 @@ def test_a_link_is_registered_on_the_stations_points_and_carries_their_covarianc
     assert record.searched is not None
     assert record.inliers > 0.8
     assert tuple(record.pose) == pytest.approx(link.pose)
+
+
+@pytest.mark.parametrize(
+    ("overlap", "dominant", "used"),
+    [(0.15, False, False), (0.15, True, True), (0.25, False, True), (0.05, True, False)],
+)
+def test_a_link_over_a_thin_overlap_must_be_dominant(
+    mission, monkeypatch: pytest.MonkeyPatch, overlap: float, dominant: bool, used: bool
+) -> None:
+    """Below 20 % overlap a link's search must be dominant too; below 10 % no link is used."""
+    stations, factors = mission
+    params = dataclasses.replace(EXACT, registration=RegistrationParams())
+    monkeypatch.setattr(stations_module, "overlap_fraction", lambda *_: overlap)
+    monkeypatch.setattr(SearchResult, "is_dominant", lambda self, ratio: dominant)
+    _, records = station_links(stations, dict(TRUTH), factors, params, back=(1,))
+    record = next(r for r in records if r.station == "b1" and r.against == "a0")
+    assert record.used is used
+    assert record.dominant is dominant
 
 
 def test_a_scan_without_a_mutual_observation_is_linked_to_its_station(mission) -> None:
