@@ -171,6 +171,10 @@ class BeaconConfig(_Section):
     min_returns: int = Field(3, ge=1, description="flagged returns needed for a detection")
     height_tolerance_m: float = Field(0.15, gt=0)
     radius_tolerance_m: float = Field(0.03, gt=0)
+    min_quality: float = Field(
+        0.6, ge=0, le=1,
+        description="a detection's fit quality (returns and RMS off the cylinder) needed",
+    )  # fmt: skip
     max_range_m: float = Field(8.0, gt=0)
 
     @property

@@ -88,6 +88,7 @@ def beacon_parameters(config: Config) -> dict[str, Any]:
         "height_tolerance_m": b.height_tolerance_m,
         "radius_tolerance_m": b.radius_tolerance_m,
         "min_returns": b.min_returns,
+        "min_quality": b.min_quality,
         "max_range_m": b.max_range_m,
         "blind_wedge_rad": b.blind_wedge_rad,
     }

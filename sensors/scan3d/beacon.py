@@ -91,10 +91,16 @@ def detect_beacons(
     max_range_m: float,
     blind_wedge_rad: float,
     cluster_gap_m: float = 0.25,
+    min_quality: float = 0.0,
 ) -> tuple[list[BeaconDetection], list[BeaconRejection]]:
     """Find beacons among the flagged returns of a 3D scan (scanner frame, z up).
 
-    ``center_height_m`` is the beacon's centre height relative to the scanner origin.
+    ``center_height_m`` is the beacon's centre height relative to the scanner origin. A
+    cylinder fitted with a quality below ``min_quality`` is rejected: few returns lying loosely
+    on it are a beacon partly hidden or merged with something beside it, and its axis is off
+    (generated building 7: 11 returns 1.9 cm RMS off the cylinder, quality 0.48, put the
+    partner 16 cm and 4° off; of 15 detections below 0.6 in three buildings, 9 were over 1°
+    off, against 14 of the 1,561 above).
     """
     points = np.asarray(points_scanner, dtype=float)[np.asarray(reflector, dtype=bool)]
     points = points[np.isfinite(points).all(axis=1)]
@@ -150,6 +156,10 @@ def detect_beacons(
             )
             continue
         quality = min(1.0, used / (4 * min_returns)) * math.exp(-residual / radius_tolerance_m)
+        if quality < min_quality:
+            reject(f"fit quality {quality:.2f} below {min_quality:g} ({used} returns, RMS "
+                   f"{residual:.3f} m)", where)  # fmt: skip
+            continue
         detections.append(BeaconDetection(range_m, bearing, where, used, residual, quality))
     detections.sort(key=lambda d: d.range_m)
     return detections, rejections

@@ -144,3 +144,31 @@ def test_no_flagged_returns_no_beacons() -> None:
     assert detect_beacons(points, np.zeros(100, bool), **DETECT) == ([], [])
     nan_points = np.full((5, 3), np.nan)
     assert detect_beacons(nan_points, np.ones(5, bool), **DETECT) == ([], [])
+
+
+def cylinder_returns(count: int, noise_m: float, seed: int = 0) -> np.ndarray:
+    """Flagged returns on the near side of a beacon 3 m ahead and 2 m left, at its height."""
+    rng = np.random.default_rng(seed)
+    centre, radius = np.array([3.0, 2.0]), BODY.beacon_radius_m
+    near = math.atan2(-centre[1], -centre[0])
+    angles = near + np.linspace(-1.0, 1.0, count)
+    xy = centre + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    xy += rng.normal(0.0, noise_m, xy.shape)
+    z = np.full(count, DETECT["center_height_m"]) + rng.uniform(-0.2, 0.2, count)
+    return np.column_stack([xy, z])
+
+
+def test_a_loose_fit_below_the_quality_is_rejected() -> None:
+    tight = cylinder_returns(20, 0.002)
+    found, _ = detect_beacons(tight, np.ones(len(tight), bool), **DETECT, min_quality=0.6)
+    assert len(found) == 1
+    assert found[0].quality > 0.8
+    assert found[0].bearing_rad == pytest.approx(math.atan2(2.0, 3.0), abs=math.radians(0.3))
+    loose = cylinder_returns(11, 0.02, seed=3)
+    found, rejected = detect_beacons(loose, np.ones(len(loose), bool), **DETECT)
+    assert len(found) == 1  # no quality asked for
+    quality = found[0].quality
+    assert quality < 0.6
+    found, rejected = detect_beacons(loose, np.ones(len(loose), bool), **DETECT, min_quality=0.6)
+    assert found == []
+    assert any(r.reason.startswith(f"fit quality {quality:.2f} below 0.6") for r in rejected)
