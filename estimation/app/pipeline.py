@@ -530,6 +530,7 @@ def finish_isam(
                                  "factors": len(searched.events),
                                  "relocalization": records_json(relocalized)},
          "isam2": {"events": smoother.events, **(extra or {}),
+                   "qr_since": smoother.refactorized,
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
                    "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0},
          **(report or {})},

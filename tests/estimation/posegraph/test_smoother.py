@@ -258,21 +258,27 @@ def test_checkpoint_errors(tmp_path: Path, mission) -> None:  # type: ignore[no-
         IncrementalSmoother.restore(poisoned, iter(mission.events))
 
 
-def test_isam2_reports_an_indeterminate_update() -> None:
+def test_isam2_reports_an_update_that_fails_with_qr_too(monkeypatch: pytest.MonkeyPatch) -> None:
     import gtsam
+
+    class Failing:
+        def __init__(self, *args: object) -> None:
+            pass
+
+        def update(self, *args: object) -> None:
+            raise RuntimeError("Indeterminate linear system detected")
+
+        def calculateBestEstimate(self) -> None:
+            raise RuntimeError("no estimate")
 
     smoother = IncrementalSmoother()
     smoother.add(Start("a", 0))
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    z0, z1 = gtsam.symbol("z", 0), gtsam.symbol("z", 1)
-    values.insert(z0, gtsam.Pose2())
-    values.insert(z1, gtsam.Pose2(1.0, 0.0, 0.0))
-    graph.add(
-        gtsam.BetweenFactorPose2(z0, z1, gtsam.Pose2(1, 0, 0), gtsam.noiseModel.Unit.Create(3))
-    )  # two new poses tied only to each other: nothing fixes where they are
-    with pytest.raises(EstimationError, match="iSAM2 update at test failed"):
-        smoother._update(graph, values, "test")
+    smoother.isam = Failing()
+    monkeypatch.setattr(gtsam, "ISAM2", Failing)
+    with pytest.raises(EstimationError, match=r"iSAM2 update at event 1 failed: Indeterminate "
+                                              r"linear system detected; with QR too"):  # fmt: skip
+        smoother.add(Move("a", 1, (1.0, 0.0, 0.0)))
+    assert smoother.refactorized == "event 1"
 
 
 def test_huber_and_cauchy_kernels_soften_a_wrong_loop_closure(mission) -> None:  # type: ignore[no-untyped-def]
@@ -319,3 +325,28 @@ def test_relative_covariance_equals_the_composed_odometry() -> None:
     # A loop closure shrinks the uncertainty between its ends below the chain's.
     closed = [*factors, FactorSpec("global", (1, 3), estimate[3], q, 3)]
     assert np.linalg.det(relative_covariances(closed, estimate)(1, 3)) < np.linalg.det(expected)
+
+
+def test_an_update_cholesky_declares_indeterminate_goes_on_with_qr() -> None:
+    """A factor a thousand times tighter than its neighbours (a registration's floor gone
+    wrong, say): Cholesky declares the system indeterminate, QR copes, from then on."""
+    tight = np.diag([1e-12, 1e-12, 1e-12])
+    events = [Start("a", 0), *(Move("a", k, (1.0, 0.0, 0.1)) for k in range(1, 5))]
+    step = np.array([1.0, 0.0, 0.1])
+    events.append(Localize("a", 3, search_pdf(step, 0.05, 0.02), ("a", 2), pose=tuple(step),
+                           covariance=tuple(map(tuple, tight))))  # fmt: skip
+    loop = np.array([4.0, 0.5, 0.4])
+    events.append(Localize("a", 4, search_pdf(loop, 0.05, 0.02), ("a", 0), pose=tuple(loop),
+                           covariance=tuple(map(tuple, tight * 1e-6))))  # fmt: skip
+    smoother = IncrementalSmoother()
+    for event in events:
+        smoother.add(event)
+    assert smoother.refactorized is not None
+    estimate = smoother.estimate()
+    np.testing.assert_allclose(estimate[pose_key("a", 4)], loop, atol=1e-6)
+    a2, a3 = estimate[pose_key("a", 2)], estimate[pose_key("a", 3)]
+    np.testing.assert_allclose(se2.between(a2, a3), step, atol=1e-5)
+    # It goes on with QR: more events, and the checkpoint state, work as before.
+    smoother.add(Move("a", 5, (1.0, 0.0, 0.0)))
+    assert pose_key("a", 5) in smoother.estimate()
+    assert smoother.refactorized == "event 5"  # the first tight factor
