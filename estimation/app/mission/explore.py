@@ -150,25 +150,33 @@ class MapView:
         return seen and not self._walled(start, end)
 
     def _walled(self, start: np.ndarray, end: np.ndarray) -> bool:
-        """Whether an obstacle of the floor map (a wall, furniture; not a robot's body, cleared
-        where robots stood) lies under the segment where it passes within ``_ignore_m`` of a
-        robot standing now. There the 3D cells are not tested (the robot's body and beacon,
-        at every heading it turned to), and a wall beside the robot would not be either: a
-        robot 0.42 m from a corridor wall saw through it into the hall beyond, and its partner
-        was sent there (generated building 4: four scan poses unobserved, then lost)."""
+        """Whether the segment, where it passes within ``_ignore_m`` of a robot standing now,
+        crosses an occupied cell over an obstacle of the floor map (a wall, furniture; not a
+        robot's body, cleared where robots stood). There the 3D cells are not tested (the
+        robot's body and its beacon at every heading it turned to, which stand on free floor),
+        and a wall beside the robot would not be either: a robot 0.42 m from a corridor wall
+        saw through it into the hall beyond, and its partner was sent there (generated
+        building 4: four scan poses unobserved, then lost)."""
         if not len(self.robots):
             return False
-        floor, res = self.floor, self.floor.resolution_m
-        a, b = np.asarray(start, dtype=float)[:2], np.asarray(end, dtype=float)[:2]
-        steps = max(2, math.ceil(2.0 * math.dist(a, b) / res) + 1)
+        floor, grid = self.floor, self.grid
+        a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+        steps = max(2, math.ceil(2.0 * float(np.linalg.norm(b - a)) / grid.resolution_m) + 1)
         points = a + np.linspace(0.0, 1.0, steps)[:, None] * (b - a)
-        gap = points[:, None, :] - self.robots[None, :, :]
+        gap = points[:, None, :2] - self.robots[None, :, :]
         points = points[(np.hypot(gap[..., 0], gap[..., 1]) <= self._ignore_m).any(axis=1)]
+        res = floor.resolution_m
         cols = np.floor((points[:, 0] - floor.lower_xy[0]) / res).astype(np.int64)
         rows = np.floor((points[:, 1] - floor.lower_xy[1]) / res).astype(np.int64)
         h, w = floor.shape
         inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        return bool(floor.obstacle[rows[inside], cols[inside]].any())
+        under = np.zeros(len(points), dtype=bool)
+        under[inside] = floor.obstacle[rows[inside], cols[inside]]
+        if not under.any():
+            return False
+        cells = np.floor((points[under] - np.asarray(grid.origin_m)) / grid.resolution_m)
+        values = grid.logodds_at(cells.astype(np.int64))
+        return bool(np.any(values > grid.params.logodds_threshold))
 
     def free_near(self, xy: np.ndarray, reach_m: float = 0.6) -> np.ndarray | None:
         """``xy`` if the robot may stand there, else the nearest drivable cell centre within

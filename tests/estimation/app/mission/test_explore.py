@@ -487,3 +487,20 @@ def test_a_wall_beside_a_robot_standing_now_still_hides_a_beacon_beyond_it() -> 
     along = np.array([2.5, 0.5, math.pi / 2])
     assert beside.geometry.sees_beacon(observer, along)
     assert beside.geometry.sees_beacon(along, observer)
+
+
+def test_a_low_box_beside_a_robot_standing_now_does_not_hide_a_beacon_above_it() -> None:
+    """The floor map marks a 0.3 m high crate beside the robot as an obstacle, but the line of
+    sight from the scanner (0.45 m) up to the beacon passes over it."""
+    i, j, k = np.meshgrid(np.arange(60), np.arange(40), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    crate = (cells[:, 0] == 30) & (cells[:, 2] < 3)  # x 3.0-3.1 m, up to 0.3 m
+    params = GridParams(resolution_m=RES)
+    grid = OccupancyGrid.from_cells(
+        params, cells, np.where(crate, params.logodds_max, params.logodds_min)
+    )
+    observer = np.array([2.58, 2.0, 0.0])
+    target = np.array([4.6, 2.0, math.pi])
+    beside = MapView(grid, CONFIG, np.array([observer[:2]]), robots_xy=np.array([observer[:2]]))
+    assert beside.floor.obstacle.any()
+    assert beside.geometry.sees_beacon(observer, target)
