@@ -189,26 +189,40 @@ class SearchResult:
         dx = (self.x_m - predicted[0])[None, :]
         dy = (self.y_m - predicted[1])[:, None]
         u, v = c * dx + s * dy, c * dy - s * dx  # (Y, X), in the predicted pose's axes
-        w = np.remainder(self.yaw_rad - predicted[2] + math.pi, 2 * math.pi) - math.pi
-        w = w[:, None, None]
-        squared = (information[0, 0] * u**2 + 2 * information[0, 1] * u * v
-                   + information[1, 1] * v**2)[None] + w * (
-                   2 * information[0, 2] * u + 2 * information[1, 2] * v
-                   + information[2, 2] * w)  # fmt: skip
+        planar = information[0, 0] * u**2 + 2 * information[0, 1] * u * v + information[1, 1] * v**2
+        turns = np.remainder(self.yaw_rad - predicted[2] + math.pi, 2 * math.pi) - math.pi
+        # log P(T) − ½ d²(T) one rotation at a time: a loop closure's window holds millions of
+        # poses, and whole-lattice temporaries cost more memory than the search itself.
+        weighed = np.empty(np.shape(self.prob), dtype=np.float32)
         with np.errstate(divide="ignore"):
-            log_p = np.log(np.asarray(self.prob, dtype=np.float64)) - 0.5 * squared
-        top = float(log_p.max())
+            for t, w in enumerate(turns):
+                squared = planar + w * (2 * information[0, 2] * u + 2 * information[1, 2] * v
+                                        + information[2, 2] * w)  # fmt: skip
+                weighed[t] = np.log(np.asarray(self.prob[t], dtype=np.float64)) - 0.5 * squared
+        best = np.unravel_index(int(np.argmax(weighed)), weighed.shape)
+        top = float(weighed[best])
         if not math.isfinite(top):
             return False
-        weighed = np.exp(log_p - top)
-        pdf = PosePdf(self.x_m, self.y_m, self.yaw_rad, weighed / weighed.sum())
-        radii = (params.peak_radius_m, params.peak_radius_rad)
-        best, own = pdf.best_pose(refine=False), self.lattice_pose
-        return (
-            math.hypot(best[0] - own[0], best[1] - own[1]) <= radii[0] + 1e-9
-            and abs(math.remainder(best[2] - own[2], 2 * math.pi)) <= radii[1] + 1e-9
-            and pdf.peak_ratio(*radii) >= params.dominance_ratio
-        )
+        bt, by, bx = (int(i) for i in best)
+        own = self.lattice_pose
+        if (
+            math.hypot(self.x_m[bx] - own[0], self.y_m[by] - own[1]) > params.peak_radius_m + 1e-9
+            or abs(math.remainder(self.yaw_rad[bt] - own[2], 2 * math.pi))
+            > params.peak_radius_rad + 1e-9
+        ):
+            return False  # the prediction prefers another mode
+        # The best weighed pose outside the peak's neighbourhood (PosePdf.peak_ratio's).
+        near_xy = np.hypot(self.x_m[None, :] - self.x_m[bx], self.y_m[:, None] - self.y_m[by])
+        near_xy = near_xy <= params.peak_radius_m + 1e-12
+        apart = np.abs(np.remainder(self.yaw_rad - self.yaw_rad[bt] + math.pi, 2 * math.pi)
+                       - math.pi)  # fmt: skip
+        elsewhere = -math.inf
+        for t in range(len(self.yaw_rad)):
+            far = apart[t] > params.peak_radius_rad + 1e-12
+            slice_ = weighed[t] if far else weighed[t][~near_xy]
+            if slice_.size:
+                elsewhere = max(elsewhere, float(slice_.max()))
+        return top - elsewhere >= math.log(params.dominance_ratio)
 
     def modes(self, count: int, radius_m: float, radius_rad: float) -> list[np.ndarray]:
         """Up to ``count`` poses (x, y, yaw): the refined best pose, then the most probable
