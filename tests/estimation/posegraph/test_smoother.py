@@ -261,9 +261,11 @@ def test_checkpoint_errors(tmp_path: Path, mission) -> None:  # type: ignore[no-
 def test_isam2_reports_an_update_that_fails_with_qr_too(monkeypatch: pytest.MonkeyPatch) -> None:
     import gtsam
 
+    made: list[str] = []  # the factorization of each iSAM2 the smoother starts
+
     class Failing:
-        def __init__(self, *args: object) -> None:
-            pass
+        def __init__(self, params: gtsam.ISAM2Params | None = None) -> None:
+            made.append("given" if params is None else str(params.getFactorization()))
 
         def update(self, *args: object) -> None:
             raise RuntimeError("Indeterminate linear system detected")
@@ -279,6 +281,7 @@ def test_isam2_reports_an_update_that_fails_with_qr_too(monkeypatch: pytest.Monk
                                               r"linear system detected; with QR too"):  # fmt: skip
         smoother.add(Move("a", 1, (1.0, 0.0, 0.0)))
     assert smoother.refactorized == "event 1"
+    assert made == ["given", "QR"]  # the restart asked for QR
 
 
 def test_huber_and_cauchy_kernels_soften_a_wrong_loop_closure(mission) -> None:  # type: ignore[no-untyped-def]
