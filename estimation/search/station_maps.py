@@ -27,6 +27,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -325,6 +326,43 @@ class StationMaps:
         work.own_seconds += time.perf_counter() - started
         work.own_builds += 1
         return kept, views
+
+    def prepare_clouds(
+        self,
+        stations: Iterable[Station],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+        workers: int = 1,
+    ) -> None:
+        """Make the clouds of ``stations`` not made yet (their bands too, one after the other),
+        up to ``workers`` at a time, so that searches run side by side afterwards only read the
+        maps. The clouds' neighbour queries and normals are compiled kernels that release the
+        GIL; each cloud is the one :meth:`cloud` would make now."""
+        registration = self.params.registration
+        if registration is None:
+            return
+        pending: dict[int, tuple[Station, _OwnMap, list[View]]] = {}
+        for station in stations:
+            own = self._own_map(station, estimate, ties)
+            if own is not None and own[0].cloud is None:
+                pending[station.key] = (station, *own)
+
+        def make(item: tuple[Station, _OwnMap, list[View]]) -> tuple[Cloud, float]:
+            station, _, views = item
+            started = time.perf_counter()
+            cloud = cloud_of_views(views, estimate[station.key], estimate, self.params,
+                                   registration)  # fmt: skip
+            return cloud, time.perf_counter() - started
+
+        items = list(pending.values())
+        if len(items) > 1 and workers > 1:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                made = list(pool.map(make, items))
+        else:
+            made = [make(item) for item in items]
+        for (station, kept, _), (cloud, seconds) in zip(items, made, strict=True):
+            kept.cloud = cloud
+            self._work(station.key).own_seconds += seconds
 
     def band(
         self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]

@@ -31,6 +31,7 @@ import functools
 import math
 import time
 from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,7 +48,6 @@ from estimation.search.exhaustive import (
     SearchResult,
     overlap_fraction,
     result_from_scores,
-    windowed_search,
 )
 from estimation.search.lattice import pose_lattice
 from estimation.search.registration import Cloud, Registration, register
@@ -57,8 +57,6 @@ from estimation.search.station_maps import (
     StationMaps,
     StationParams,
     View,
-    cloud_of_views,
-    fuse_band,
     mutual_ties,
 )
 from mapping.band import Band
@@ -74,8 +72,8 @@ __all__ = [
     "StationParams",
     "View",
     "loop_closures",
+    "pose_of",
     "records_json",
-    "relocalize",
     "scan_links",
     "searched_with",
     "station_links",
@@ -179,7 +177,8 @@ def _search_near(
     return result, bx in (0, len(x_m) - 1) or by in (0, len(y_m) - 1)
 
 
-def _pose_of(result: SearchResult) -> tuple[float, float, float]:
+def pose_of(result: SearchResult) -> tuple[float, float, float]:
+    """The search's best pose as three floats (a record's ``pose``)."""
     x, y, yaw = (float(v) for v in result.pose)
     return x, y, yaw
 
@@ -196,9 +195,9 @@ class _Refined:
 
     def record_fields(self, result: SearchResult) -> dict[str, Any]:
         if self.registration is None:
-            return {"pose": _pose_of(result)}
+            return {"pose": pose_of(result)}
         x, y, yaw = (float(v) for v in self.pose)
-        return {"pose": (x, y, yaw), "searched": _pose_of(result),
+        return {"pose": (x, y, yaw), "searched": pose_of(result),
                 "inliers": self.registration.inliers}  # fmt: skip
 
     def event(self, station: Station, anchor: Station, peak: tuple[float, float] | None,
@@ -247,18 +246,15 @@ def _near(pose: np.ndarray, predicted: np.ndarray) -> bool:
     )
 
 
-def _link(
+def _searchable(
     station: Station,
     previous: Station,
     estimate: dict[int, np.ndarray],
     maps: StationMaps,
     ties: dict[int, set[int]],
-    params: StationParams,
-) -> tuple[Localize | None, SearchRecord] | None:
-    """``station``'s map searched against ``previous``'s around the predicted relative pose and
-    registered on their points: the ``Localize`` event when the answer is sound and consistent
-    with the prediction (else None), and the record; None when there is nothing to search."""
-    search = params.station_search
+) -> tuple[Band, Band, np.ndarray] | None:
+    """The two stations' bands and the predicted relative pose when a link can be searched:
+    both have a band, and the link's window around the prediction can reach the older one."""
     local = maps.band(station, estimate, ties)
     global_ = maps.band(previous, estimate, ties)
     if local is None or global_ is None:
@@ -269,6 +265,27 @@ def _link(
                          max(y0 - predicted[1], 0.0, predicted[1] - y1))  # fmt: skip
     if outside > _LINK_WINDOW_M / 2 + _LINK_CONSISTENT_M:
         return None  # no pose of the (moved) window could agree with the prediction
+    return local, global_, predicted
+
+
+_Answer = tuple[Localize | None, SearchRecord] | None
+
+
+def _link(
+    station: Station,
+    previous: Station,
+    searchable: tuple[Band, Band, np.ndarray],
+    estimate: dict[int, np.ndarray],
+    maps: StationMaps,
+    ties: dict[int, set[int]],
+    params: StationParams,
+) -> _Answer:
+    """``station``'s map searched against ``previous``'s around the predicted relative pose and
+    registered on their points (``searchable``: :func:`_searchable`'s answer): the
+    ``Localize`` event when the answer is sound and consistent with the prediction (else None),
+    and the record; None when the search cannot run."""
+    search = params.station_search
+    local, global_, predicted = searchable
     started = time.perf_counter()
     try:
         result, _ = _search_near(local, global_, search, predicted, _LINK_WINDOW_M, _LINK_YAW_RAD)
@@ -288,7 +305,6 @@ def _link(
     dominant = result.is_dominant(search.dominance_ratio)
     used = used and overlap >= _MIN_OVERLAP and (dominant or overlap >= _THIN_OVERLAP)
     event = refined.event(station, previous, _LINK_RADIUS, result) if used and refined else None
-    maps.searched(station, time.perf_counter() - started)
     record = SearchRecord(
         station=station.label, against=previous.label, band="ceiling", kind="link",
         peak_ratio=float(result.peak_ratio),
@@ -332,8 +348,31 @@ def _links(
     ties: dict[int, set[int]],
     params: StationParams,
 ) -> tuple[list[Localize], list[SearchRecord]]:
-    """:func:`_link` of each (earlier station, station) pair: the events and the records."""
-    found = [f for p, s in pairs if (f := _link(s, p, estimate, maps, ties, params)) is not None]
+    """:func:`_link` of each (earlier station, station) pair: the events and the records. The
+    maps are made first; then the pairs are searched and registered side by side (they only
+    read the maps), their answers taken in the pairs' order."""
+    ready = [
+        (p, s, searchable)
+        for p, s in pairs
+        if (searchable := _searchable(s, p, estimate, maps, ties)) is not None
+    ]
+    workers = params.station_search.thread_count()
+    maps.prepare_clouds([one for p, s, _ in ready for one in (s, p)], estimate, ties, workers)
+
+    def link(item: tuple[Station, Station, tuple[Band, Band, np.ndarray]]) -> _Answer:
+        previous, station, searchable = item
+        return _link(station, previous, searchable, estimate, maps, ties, params)
+
+    if len(ready) > 1 and workers > 1:
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            answers = list(pool.map(link, ready))
+    else:
+        answers = [link(item) for item in ready]
+    found = []
+    for (_, station, _), answer in zip(ready, answers, strict=True):
+        if answer is not None:
+            maps.searched(station, answer[1].seconds)
+            found.append(answer)
     return [e for e, _ in found if e is not None], [r for _, r in found]
 
 
@@ -469,122 +508,6 @@ SEARCH_STAGES = (
     ("links of unobserved scans", scan_links),
     ("loop closures", loop_closures),
 )
-
-
-def relocalize(
-    dwells: list[Dwell],
-    mapped: list[View],
-    estimate: dict[int, np.ndarray],
-    params: StationParams,
-) -> list[SearchRecord]:
-    """After the changes: each robot's sweep of each dwell (its local map: every view of the
-    dwell, in its frame) against the map of the ``mapped`` views, ceiling and floor band. With
-    ``params.registration`` the sweep's points are then registered on the mapped points at the
-    modes of both bands' PDFs, and the registration that lays the most points on the map is
-    each record's pose (the band's search pose kept beside it): a band whose best mode is wrong
-    (a high hall's ceiling band after the clutter moved) still gets the robot's pose when the
-    other band or a lesser mode holds it."""
-    records: list[SearchRecord] = []
-    origin = np.zeros(3)
-    whole: dict[str, Band | None] = {}  # the map of the mapped views, fused once per band
-    points = _MapPoints(mapped, estimate, params)
-    search = params.search
-    for dwell in dwells:
-        for view in dwell.views:
-            if view.key not in estimate:
-                continue
-            started = time.perf_counter()
-            searched = []
-            for which in ("ceiling", "floor"):
-                local = fuse_band(list(dwell.views), estimate[view.key], estimate, params, which)
-                if which not in whole:
-                    whole[which] = fuse_band(mapped, origin, estimate, params, which)
-                global_ = whole[which]
-                if local is None or global_ is None:
-                    continue
-                try:
-                    found = windowed_search(
-                        local, global_, search, estimate[view.key][:2], params.window_m,
-                        params.max_window_m,
-                    )  # fmt: skip
-                except EstimationError:
-                    continue
-                searched.append((which, found, local, global_))
-            candidates = [
-                mode
-                for _, found, _, _ in searched
-                for mode in found.result.modes(
-                    _RELOCALIZE_MODES, search.peak_radius_m, search.peak_radius_rad
-                )
-            ]
-            sweep = points.of_dwell(dwell, estimate[view.key], estimate) if candidates else None
-            verified = points.verified(sweep, candidates)
-            seconds = time.perf_counter() - started
-            for which, found, local, global_ in searched:
-                fields: dict[str, Any] = {"pose": _pose_of(found.result)}
-                if verified is not None:
-                    x, y, yaw = (float(v) for v in verified.pose)
-                    fields = {"pose": (x, y, yaw), "searched": _pose_of(found.result),
-                              "inliers": verified.inliers}  # fmt: skip
-                records.append(
-                    SearchRecord(
-                        station=f"{view.robot}{view.index}", against="map", band=which,
-                        kind="relocalize", **fields,
-                        peak_ratio=float(found.result.peak_ratio), dominant=found.dominant,
-                        used=False, seconds=seconds, time_s=dwell.time_s,
-                        overlap=overlap_fraction(local, global_, found.result.pose),
-                        picture=SearchPicture.of(found.result, local, global_),
-                    )
-                )  # fmt: skip
-    return records
-
-
-#: Relocalization registers the sweep at this many modes of each band's search PDF.
-_RELOCALIZE_MODES = 5
-
-
-class _MapPoints:
-    """The mapped views' points as a registration cloud in the map frame (made when first
-    needed), against which relocalizations are verified and refined (``params.registration``;
-    without it, nothing is)."""
-
-    def __init__(
-        self, mapped: list[View], estimate: dict[int, np.ndarray], params: StationParams
-    ) -> None:
-        self.mapped, self.estimate, self.params = mapped, estimate, params
-
-    @functools.cached_property
-    def cloud(self) -> Cloud | None:
-        registration = self.params.registration
-        if registration is None or not self.mapped:
-            return None
-        views = [v for v in self.mapped if v.key in self.estimate]
-        return cloud_of_views(views, np.zeros(3), self.estimate, self.params, registration)
-
-    def of_dwell(
-        self, dwell: Dwell, frame: np.ndarray, estimate: dict[int, np.ndarray]
-    ) -> Cloud | None:
-        registration = self.params.registration
-        if registration is None:
-            return None
-        views = [v for v in dwell.views if v.key in estimate]  # a robot never tied: no pose
-        return cloud_of_views(views, frame, estimate, self.params, registration)
-
-    def verified(self, sweep: Cloud | None, candidates: list[np.ndarray]) -> Registration | None:
-        """The registration of ``sweep`` that lays the most of its points on the map, over the
-        candidate poses (the search PDF's modes); None when none is accepted."""
-        settings = self.params.registration
-        if settings is None or sweep is None or self.cloud is None:
-            return None
-        best: Registration | None = None
-        reach = sweep.reach_m() + settings.max_distance_m
-        for seed in candidates:
-            found = register(sweep, self.cloud.within(seed[:2], reach), seed, settings)
-            if found is None or not found.accepted(settings):
-                continue
-            if best is None or found.inlier_points > best.inlier_points:
-                best = found
-        return best
 
 
 def records_json(records: list[SearchRecord]) -> list[dict[str, Any]]:

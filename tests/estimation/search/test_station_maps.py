@@ -15,6 +15,7 @@ from estimation.posegraph.keys import pose_key
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
+from estimation.search.relocalization import relocalize
 from estimation.search.station_maps import (
     Dwell,
     Station,
@@ -26,7 +27,7 @@ from estimation.search.station_maps import (
     tied_views,
 )
 from estimation.search.station_maps import _moved_m as moved_m
-from estimation.search.stations import relocalize, scan_links, station_links
+from estimation.search.stations import scan_links, station_links
 from mapping.band import Band
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
@@ -195,6 +196,59 @@ def test_a_link_is_registered_on_the_stations_points_and_carries_their_covarianc
     assert record.searched is not None
     assert record.inliers > 0.8
     assert tuple(record.pose) == pytest.approx(link.pose)
+
+
+def test_links_searched_side_by_side_equal_those_searched_one_by_one(mission) -> None:
+    """The links of a stage run on several threads once the maps are made; their events, records
+    and the maps' work are those of one thread, in the same order."""
+    stations, factors = mission
+    off = np.array([0.05, 0.03, np.radians(0.5)])
+    estimate = {k: se2.compose(off, v) if k == pose_key("a", 1) else v for k, v in TRUTH.items()}
+    answers = []
+    for workers in (1, 3):
+        search = dataclasses.replace(EXACT.station_search, workers=workers)
+        params = dataclasses.replace(EXACT, registration=RegistrationParams(),
+                                     station_search=search)  # fmt: skip
+        maps = StationMaps(params)
+        events, records = station_links(stations, estimate, factors, params, back=(1, 2, 3),
+                                        maps=maps)  # fmt: skip
+        labels = [(r.station, r.against) for r in records]
+        clouds = {s.key: maps.cloud(s, estimate, mutual_ties(factors)) for s in stations}
+        answers.append((events, [dataclasses.replace(r, seconds=0.0) for r in records], labels,
+                        {k: w.own_builds for k, w in maps.work.items()}, clouds))  # fmt: skip
+    (events_1, records_1, labels_1, builds_1, clouds_1), (events_3, records_3, labels_3,
+                                                          builds_3, clouds_3) = answers  # fmt: skip
+    assert labels_1 == [("b1", "a0"), ("a2", "b1"), ("a2", "a0"), ("b3", "a2"), ("b3", "b1"),
+                        ("b3", "a0")]  # fmt: skip
+    assert labels_3 == labels_1
+    assert len(events_1) >= 3
+    assert [(e.robot, e.index, e.pose) for e in events_3] == [
+        (e.robot, e.index, e.pose) for e in events_1
+    ]
+    assert [(r.pose, r.used, r.overlap, r.peak_ratio) for r in records_3] == [
+        (r.pose, r.used, r.overlap, r.peak_ratio) for r in records_1
+    ]
+    assert builds_3 == builds_1 == {s.key: 1 for s in stations}
+    for key, cloud in clouds_1.items():
+        assert cloud is not None
+        assert np.array_equal(cloud.points, clouds_3[key].points)
+
+
+def test_clouds_are_prepared_only_with_registration(mission) -> None:
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    maps = StationMaps(dataclasses.replace(EXACT, registration=None))
+    maps.prepare_clouds(stations, dict(TRUTH), ties, workers=2)
+    assert maps.work == {}  # nothing made: no band, no cloud
+    registered = StationMaps(dataclasses.replace(EXACT, registration=RegistrationParams()))
+    registered.prepare_clouds([*stations, *stations], dict(TRUTH), ties, workers=2)
+    assert {k: w.own_builds for k, w in registered.work.items()} == {s.key: 1 for s in stations}
+    made = registered.cloud(stations[2], dict(TRUTH), ties)
+    assert made is not None
+    assert len(made) > 1000
+    untied = [Station("c", 0, 0.0, (view_at("a", 0),))]  # its view has no pose: nothing to make
+    registered.prepare_clouds(untied, {}, ties, workers=2)
+    assert pose_key("c", 0) not in registered.work
 
 
 @pytest.mark.parametrize(
