@@ -66,6 +66,7 @@ class Dataset:
     starts: dict[str, np.ndarray]  # declared start poses (x_m, y_m, yaw_rad): the map frame
     events: list[dict[str, Any]]
     mission: dict[str, Any]
+    partial: str | None = None  # why the mission failed under way (partial.json), else None
     _odometry: dict[str, tuple[np.ndarray, np.ndarray]] = field(
         default_factory=dict, repr=False, compare=False
     )
@@ -146,7 +147,21 @@ def load_dataset(path: Path | str, overrides: dict[str, Any] | None = None) -> D
     for number, line in enumerate(text.splitlines(), 1):
         if line.strip():
             events.append(parse_event(line, robots, f"{events_file}:{number}"))
-    return Dataset(path, config, robots, starts, events, mission)
+    return Dataset(path, config, robots, starts, events, mission, _partial(path / "partial.json"))
+
+
+def _partial(note: Path) -> str | None:
+    """The failure ``partial.json`` records (a mission that failed under way), or None."""
+    if not note.exists():
+        return None
+    try:
+        document = json.loads(read_text_file(note, ConfigError, 1 << 16))
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{note}: not JSON ({exc.msg}, line {exc.lineno})") from None
+    failure = document.get("failure") if isinstance(document, dict) else None
+    if not isinstance(failure, str):
+        raise ConfigError(f"{note}: no failure (a string) recorded")
+    return failure
 
 
 def parse_event(line: str, robots: list[str], where: str) -> dict[str, Any]:

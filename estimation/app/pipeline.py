@@ -270,6 +270,7 @@ def _finish(
         "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
         "dropped_poses": [key_label(k) for k in solution.dropped],
         "stations_without_mutual": unobserved_stations(prepared, factors),
+        "partial_mission": dataset.partial,
         "timings_s": timings.as_json(),
         **extra,
     }

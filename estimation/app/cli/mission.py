@@ -217,6 +217,11 @@ def print_batch(r: dict[str, Any], out_dir: Path) -> None:
         f"{r.get('occupied_voxels', 0):,} occupied voxels; "
         f"{r['timings_s']['total']:.1f} s"
     )
+    if r.get("partial_mission"):
+        make_console().print(
+            f"  the mission failed under way ({r['partial_mission']}): this result covers its "
+            "recording up to the failure"
+        )
     unobserved = r.get("stations_without_mutual", [])
     if unobserved:
         make_console().print(

@@ -35,10 +35,8 @@ from scipy import ndimage
 
 from estimation import __version__
 from estimation.app.config import Config, ConfigError, config_from_mapping
-from estimation.errors import EstimationError
-from mapping.errors import MapError
+from estimation.app.mission.simulated import MISSION_FAILURES
 from sensors.atomic import replace_directory, write_text_atomic
-from sensors.errors import SensorError
 from sensors.sim.furnish import FurnishParams
 from sensors.sim.generate import MAX_ROOMS, MIN_ROOMS
 from sensors.sim.mission import MissionError, mission_from_mapping
@@ -86,8 +84,6 @@ OPEN_FLOOR_M = 1.0
 STRICT = (0.05, 0.5)
 WITHIN = (0.1, 1.0)
 #: The errors a building's mission may end with; any other error stops the whole run.
-FAILURES: tuple[type[Exception], ...] = (SensorError, EstimationError, MapError, ConfigError)
-
 Progress = Callable[[str], None]
 
 
@@ -403,7 +399,7 @@ def _evaluate_building(out: Path, seed: int, run: _Run, step: Progress) -> dict[
         step("placing the robots")
         mission = generated_mission(world, seed, run.robots, run.config, run.stations)
         row.update(_fly(folder, mission, run.overrides, step))
-    except FAILURES as exc:
+    except MISSION_FAILURES as exc:
         row["error"] = " ".join(str(exc).split()) or type(exc).__name__
     row["wall_time_s"] = round(time.perf_counter() - started, 2)
     return row

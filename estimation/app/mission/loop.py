@@ -57,7 +57,10 @@ from sensors.lms200.capture import CaptureWriter
 from sensors.sim.mission import MissionSpec, StepSpec, mission_to_yaml
 from sensors.trajio import as_logged, write_tum
 
-__all__ = ["LoopResult", "MissionLoop"]
+__all__ = ["PARTIAL", "LoopResult", "MissionLoop"]
+
+#: A dataset whose mission failed holds this file: why, and how far the mission had gone.
+PARTIAL = "partial.json"
 
 Progress = Callable[[str], None]
 #: Exploration stalls when the known floor grew by less than this (m²) over this many stations;
@@ -506,6 +509,15 @@ class MissionLoop:
             header + mission_to_yaml(self.mission, steps, self.config.model_dump(mode="json")),
         )
         return self.fleet.finish(self.work)
+
+    def keep(self, failure: str) -> None:
+        """Close the dataset as far as the mission was flown when it failed with ``failure``
+        and mark it partial (:data:`PARTIAL`): its recording can then be examined offline
+        (``coopmap batch`` reads it like any other)."""
+        self.record()
+        note = {"failure": failure, "mission_s": round(self.now_s, 3), "dwells": self._dwells,
+                "stations": len(self.trace)}  # fmt: skip
+        write_text_atomic(self.work / PARTIAL, json.dumps(note) + "\n")
 
     def discard(self) -> None:
         for writer in self.writers.values():

@@ -14,14 +14,27 @@ from typing import Any
 
 import numpy as np
 
-from estimation.app.config import Config
+from estimation.app.config import Config, ConfigError
 from estimation.app.mission.fleet import SimulatedFleet
 from estimation.app.mission.loop import LoopResult, MissionLoop
+from estimation.errors import EstimationError
+from mapping.errors import MapError
+from sensors.errors import SensorError
 from sensors.sim.mission import MissionError, MissionSpec
 from sensors.sim.planner import FreeSpace, free_space
 from sensors.sim.world import World
 
-__all__ = ["fly", "mission_starts", "simulated_fleet"]
+__all__ = ["MISSION_FAILURES", "PartialMissionError", "fly", "mission_starts", "simulated_fleet"]
+
+#: The errors that end a mission as coopmap's known failures (not a bug in it): a station the
+#: estimator cannot take, a collision, a goal the fleet refuses.
+MISSION_FAILURES: tuple[type[Exception], ...] = (SensorError, EstimationError, MapError,
+                                                 ConfigError)  # fmt: skip
+
+
+class PartialMissionError(MissionError):
+    """The mission failed once it was under way; the dataset holds its recording up to the
+    failure (``partial.json``)."""
 
 
 def mission_starts(mission: MissionSpec) -> dict[str, np.ndarray]:
@@ -60,13 +73,25 @@ def fly(
 ) -> LoopResult:
     """Fly ``mission`` in the simulator with the loop; the dataset and result go to ``work``
     (which becomes ``final`` when the caller replaces it there). ``observe`` is the loop's
-    hook after every dwell (:attr:`MissionLoop.observe`)."""
+    hook after every dwell (:attr:`MissionLoop.observe`). A known failure once under way
+    (:data:`MISSION_FAILURES`) closes the dataset as far as it was recorded and raises
+    :class:`PartialMissionError`; anything else discards it."""
     fleet = simulated_fleet(mission, config, world, seed, space)
     loop = MissionLoop(
         fleet, mission, config, work, concurrent=concurrent, progress=status, observe=observe
     )
     try:
         reason = loop.run()
+    except MISSION_FAILURES as exc:
+        failure = " ".join(str(exc).split()) or type(exc).__name__
+        try:
+            loop.keep(failure)
+        except BaseException:
+            loop.discard()
+            fleet.close()
+            raise exc from None
+        fleet.close()
+        raise PartialMissionError(failure) from exc
     except BaseException:
         loop.discard()
         fleet.close()

@@ -23,6 +23,7 @@ from estimation.app.resources import resolve_builtin
 from estimation.app.rig import dwell_seconds, odometry_noise, robot_body, simulated_scanner
 from sensors.atomic import check_replaceable, replace_directory, write_text_atomic
 from sensors.sim.mission import (
+    MissionError,
     MissionSpec,
     StepSpec,
     build_timeline,
@@ -192,11 +193,20 @@ def _fly_loop(mission: MissionSpec, config: Config, world: World, space: FreeSpa
               status: Callable[[str], None] | None,
               observe: Callable[[Any], None] | None = None) -> SimulationResult:  # fmt: skip
     """``plan: auto`` with the mission loop: estimation and planning during the mission."""
-    from estimation.app.mission.simulated import fly
+    from estimation.app.mission.simulated import PartialMissionError, fly
 
+    failed: PartialMissionError | None = None
     with replace_directory(out_dir, "dataset") as work:
-        flown = fly(mission, config, world, space, seed, work, final=out_dir, status=status,
-                    observe=observe)  # fmt: skip
+        try:
+            flown = fly(mission, config, world, space, seed, work, final=out_dir, status=status,
+                        observe=observe)  # fmt: skip
+        except PartialMissionError as exc:
+            failed = exc  # the recording so far still takes out_dir's place
+    if failed is not None:
+        raise MissionError(
+            f"the mission failed: {failed}; its recording up to the failure is "
+            f"in {out_dir} (partial.json says how far it went)"
+        ) from failed
     report = flown.output.report
     return SimulationResult(
         out_dir=out_dir, mission=mission_path.stem, world=world.name, seed=seed,

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimation.app.dataset import LmsDecoder, RobotStream, decode_robot
+from estimation.app.config import ConfigError
+from estimation.app.dataset import LmsDecoder, RobotStream, decode_robot, load_dataset
 from sensors.errors import SensorError
 from sensors.lms200.capture import CaptureReader, CaptureWriter
 from sensors.lms200.protocol.plausibility import ScanLimits
@@ -164,3 +165,52 @@ def test_lms_decoder_does_not_depend_on_how_the_bytes_are_split(tmp_path: Path) 
             assert shift.min() >= 0.0
             assert shift.max() < 0.005
             np.testing.assert_allclose(shift, shift[0], atol=1e-9)
+
+
+def minimal_dataset(folder: Path) -> Path:
+    """mission.yaml with two robots and an empty events.jsonl: what load_dataset reads."""
+    folder.mkdir()
+    (folder / "mission.yaml").write_text(
+        "robots:\n  - {name: a, start: [0, 0, 0]}\n  - {name: b, start: [2, 0, 180]}\n",
+        encoding="utf-8",
+    )
+    (folder / "events.jsonl").write_text("", encoding="utf-8")
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("note", "expected"),
+    [
+        (None, None),
+        ('{"failure": "Indeterminate linear system", "dwells": 7}', "Indeterminate linear system"),
+    ],
+)
+def test_a_partial_dataset_says_why_its_mission_failed(
+    tmp_path: Path, note: str | None, expected: str | None
+) -> None:
+    folder = minimal_dataset(tmp_path / "dataset")
+    if note is not None:
+        (folder / "partial.json").write_text(note, encoding="utf-8")
+    assert load_dataset(folder).partial == expected
+
+
+@pytest.mark.parametrize(
+    ("note", "message"),
+    [
+        ('{"failure": ', r"partial\.json: not JSON \(Expecting value, line 1\)"),
+        ('{"failure": 3}', r"partial\.json: no failure \(a string\) recorded"),
+        ("[1, 2]", r"partial\.json: no failure \(a string\) recorded"),
+        (b"\xff\xfe", r"partial\.json"),
+    ],
+)
+def test_a_corrupt_partial_note_is_a_one_line_error(
+    tmp_path: Path, note: str | bytes, message: str
+) -> None:
+    folder = minimal_dataset(tmp_path / "dataset")
+    path = folder / "partial.json"
+    if isinstance(note, bytes):
+        path.write_bytes(note)
+    else:
+        path.write_text(note, encoding="utf-8")
+    with pytest.raises(ConfigError, match=message):
+        load_dataset(folder)

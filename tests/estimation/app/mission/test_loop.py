@@ -21,6 +21,7 @@ from estimation.app.sim.simulate import (
     robot_free_space,
     run_simulation,
 )
+from estimation.errors import EstimationError
 from estimation.posegraph.events import Move, Observe, Start
 from sensors.sim.mission import MissionError, load_mission
 from sensors.sim.world import load_world
@@ -146,3 +147,62 @@ def test_a_start_where_the_robot_does_not_fit_is_refused(tmp_path: Path) -> None
     with pytest.raises(MissionError, match="robot 'a' starts at"):
         run_simulation(path, tmp_path / "out")
     assert not (tmp_path / "out").exists()
+
+
+def failing_after(monkeypatch: pytest.MonkeyPatch, dwells: int, error: Exception) -> None:
+    """Every dwell after the first ``dwells`` ends in ``error`` once it is recorded."""
+    original = MissionLoop.dwell
+    calls = []
+
+    def dwell(self: MissionLoop, **kwargs: object) -> int:
+        done = original(self, **kwargs)  # type: ignore[arg-type]
+        calls.append(done)
+        if len(calls) > dwells:
+            raise error
+        return done
+
+    monkeypatch.setattr(MissionLoop, "dwell", dwell)
+
+
+def test_a_mission_that_fails_under_way_keeps_its_recording(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A known failure mid-mission (here an indeterminate system after three dwells) ends the
+    command with one error, and the dataset recorded so far takes the output's place, marked
+    partial: batch reads it."""
+    failing_after(monkeypatch, 3, EstimationError("Indeterminate linear system at b2"))
+    out = tmp_path / "dataset"
+    with pytest.raises(MissionError, match=r"the mission failed: Indeterminate linear system at "
+                       r"b2; its recording up to the failure is in .*partial\.json"):  # fmt: skip
+        run_simulation(write_mission(tmp_path), out)
+    note = json.loads((out / "partial.json").read_text(encoding="utf-8"))
+    assert note["failure"] == "Indeterminate linear system at b2"
+    assert note["dwells"] == 4
+    assert note["mission_s"] > 0
+    for name in ("mission.yaml", "events.jsonl", "world.yaml"):
+        assert (out / name).is_file(), name
+    assert not (out / "result").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
+    assert sum(e["event"] == "dwell" for e in events) == 4
+    result = run_batch(out, tmp_path / "batch")
+    assert result.report["observations"] >= 2
+    assert result.report["partial_mission"] == "Indeterminate linear system at b2"
+    # Run again over it: a partial dataset is coopmap's and is replaced like any other.
+    monkeypatch.undo()
+    failing_after(monkeypatch, 1, EstimationError("again"))
+    with pytest.raises(MissionError, match="the mission failed: again"):
+        run_simulation(write_mission(tmp_path), out)
+    assert json.loads((out / "partial.json").read_text(encoding="utf-8"))["dwells"] == 2
+
+
+def test_a_mission_that_fails_with_a_bug_keeps_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An error that is no known failure (a bug) leaves no dataset behind: nothing half made
+    takes the output's place."""
+    failing_after(monkeypatch, 2, RuntimeError("a bug"))
+    with pytest.raises(RuntimeError, match="a bug"):
+        run_simulation(write_mission(tmp_path), tmp_path / "dataset")
+    assert not (tmp_path / "dataset").exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
