@@ -5,6 +5,7 @@ work on these arrays; ``mapping.grid.OccupancyGrid`` owns one :class:`BlockStora
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -101,20 +102,22 @@ class BlockStorage:
 
 #: The bitmap that de-duplicates a scan's updates near the sensor (see ``mapping.kernels.cube``):
 #: 16 MB of address space, of which a scan touches the pages around its rays. All zeros
-#: between scans, so every grid shares it (kernels hold the GIL: one scan at a time).
-_SCAN_CUBE: list[np.ndarray] = []
+#: between scans, so every grid of a thread shares that thread's (the kernel releases the GIL:
+#: grids on other threads integrate at the same time).
+_SCAN_CUBE = threading.local()
 
 
 def scan_cube() -> np.ndarray:
-    """The shared de-duplication bitmap, allocated on first use."""
-    if not _SCAN_CUBE:
-        _SCAN_CUBE.append(np.zeros(CUBE_ARRAY_BYTES, dtype=np.uint8))
-    return _SCAN_CUBE[0]
+    """This thread's de-duplication bitmap, allocated on first use."""
+    cube = getattr(_SCAN_CUBE, "cube", None)
+    if cube is None:
+        cube = _SCAN_CUBE.cube = np.zeros(CUBE_ARRAY_BYTES, dtype=np.uint8)
+    return cube
 
 
 def discard_scan_cube() -> None:
-    """Drop the bitmap (after a scan failed half-way it holds that scan's bits)."""
-    _SCAN_CUBE.clear()
+    """Drop this thread's bitmap (after a scan failed half-way it holds that scan's bits)."""
+    _SCAN_CUBE.cube = None
 
 
 def hash_table_bits(capacity: int) -> int:

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 import numpy as np
 
@@ -56,8 +57,12 @@ __all__ = [
     "fuse_band",
     "fuse_views",
     "mutual_ties",
+    "side_by_side",
     "tied_views",
 ]
+
+_T = TypeVar("_T")
+_R = TypeVar("_R")
 
 #: A band with fewer known cells than this is no map to match (a station that saw no ceiling).
 MIN_KNOWN_CELLS = 50
@@ -262,6 +267,14 @@ def _moved_m(before: np.ndarray, after: np.ndarray, reach_m: np.ndarray) -> floa
     return float(shift.max())
 
 
+def side_by_side(work: Callable[[_T], _R], items: list[_T], workers: int) -> list[_R]:
+    """``work`` of each item, in order; on up to ``workers`` threads when there are several."""
+    if len(items) > 1 and workers > 1:
+        with ThreadPoolExecutor(max_workers=min(workers, len(items))) as pool:
+            return list(pool.map(work, items))
+    return [work(item) for item in items]
+
+
 @dataclass
 class _OwnMap:
     views: tuple[int, ...]
@@ -309,6 +322,20 @@ class StationMaps:
         self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
     ) -> tuple[_OwnMap, list[View]] | None:
         """The station's own map (its band fused again if a view moved), and its views."""
+        wanted = self._own_wanted(station, estimate, ties)
+        if wanted is None:
+            return None
+        kept, views, relative = wanted
+        if kept is None:
+            kept = self._keep_own(station, views, *self._fuse_own(station, views, relative,
+                                                                  estimate))  # fmt: skip
+        return kept, views
+
+    def _own_wanted(
+        self, station: Station, estimate: dict[int, np.ndarray], ties: dict[int, set[int]]
+    ) -> tuple[_OwnMap | None, list[View], np.ndarray] | None:
+        """The station's kept map if its views stayed put (else None), its views and their
+        poses relative to it; None when it has no view with a pose."""
         views = [v for v in tied_views(station, ties) if v.key in estimate]
         if not views:
             return None
@@ -316,16 +343,49 @@ class StationMaps:
         keys = tuple(v.key for v in views)
         kept = self._own.get(station.key)
         if kept is not None and kept.views == keys and self._still(kept.relative, relative, views):
-            return kept, views
+            return kept, views, relative
+        return None, views, relative
+
+    def _fuse_own(
+        self, station: Station, views: list[View], relative: np.ndarray,
+        estimate: dict[int, np.ndarray],
+    ) -> tuple[_OwnMap, float]:  # fmt: skip
+        """The station's map fused afresh (touches nothing kept: runs on any thread), and the
+        seconds it took."""
         started = time.perf_counter()
         grid = fuse_views(views, estimate[station.key], estimate, self.params)
-        kept = _OwnMap(keys, relative, band_of_grid(grid, self.params, "ceiling"))
-        self._own[station.key] = kept
+        made = _OwnMap(tuple(v.key for v in views), relative,
+                       band_of_grid(grid, self.params, "ceiling"))  # fmt: skip
+        return made, time.perf_counter() - started
+
+    def _keep_own(self, station: Station, views: list[View], made: _OwnMap,
+                  seconds: float) -> _OwnMap:  # fmt: skip
+        self._own[station.key] = made
         work = self._work(station.key)
         work.own_rays += sum(len(v.points_scanner) for v in views)
-        work.own_seconds += time.perf_counter() - started
+        work.own_seconds += seconds
         work.own_builds += 1
-        return kept, views
+        return made
+
+    def prepare_maps(
+        self,
+        stations: Iterable[Station],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+        workers: int = 1,
+    ) -> None:
+        """Fuse the maps of ``stations`` not made yet (or whose views moved), up to ``workers``
+        at a time (the fusion kernel releases the GIL); each is the one :meth:`band` would
+        make now."""
+        stale: dict[int, tuple[Station, list[View], np.ndarray]] = {}
+        for station in stations:
+            wanted = self._own_wanted(station, estimate, ties)
+            if wanted is not None and wanted[0] is None:
+                stale[station.key] = (station, wanted[1], wanted[2])
+        fused = side_by_side(lambda item: self._fuse_own(*item, estimate), list(stale.values()),
+                             workers)  # fmt: skip
+        for (station, views, _), (made, seconds) in zip(stale.values(), fused, strict=True):
+            self._keep_own(station, views, made, seconds)
 
     def prepare_clouds(
         self,
@@ -334,34 +394,31 @@ class StationMaps:
         ties: dict[int, set[int]],
         workers: int = 1,
     ) -> None:
-        """Make the clouds of ``stations`` not made yet (their bands too, one after the other),
-        up to ``workers`` at a time, so that searches run side by side afterwards only read the
-        maps. The clouds' neighbour queries and normals are compiled kernels that release the
-        GIL; each cloud is the one :meth:`cloud` would make now."""
+        """Make the clouds of ``stations`` not made yet (their maps first), up to ``workers`` at
+        a time, so that searches run side by side afterwards only read the maps. The clouds'
+        neighbour queries and normals are compiled kernels that release the GIL; each cloud is
+        the one :meth:`cloud` would make now."""
+        stations = list(stations)
+        self.prepare_maps(stations, estimate, ties, workers)
         registration = self.params.registration
         if registration is None:
             return
-        pending: dict[int, tuple[Station, _OwnMap, list[View]]] = {}
+        pending: dict[int, tuple[Station, list[View]]] = {}
         for station in stations:
             own = self._own_map(station, estimate, ties)
             if own is not None and own[0].cloud is None:
-                pending[station.key] = (station, *own)
+                pending[station.key] = (station, own[1])
 
-        def make(item: tuple[Station, _OwnMap, list[View]]) -> tuple[Cloud, float]:
-            station, _, views = item
+        def make(item: tuple[Station, list[View]]) -> tuple[Cloud, float]:
+            station, views = item
             started = time.perf_counter()
             cloud = cloud_of_views(views, estimate[station.key], estimate, self.params,
                                    registration)  # fmt: skip
             return cloud, time.perf_counter() - started
 
-        items = list(pending.values())
-        if len(items) > 1 and workers > 1:
-            with ThreadPoolExecutor(max_workers=workers) as pool:
-                made = list(pool.map(make, items))
-        else:
-            made = [make(item) for item in items]
-        for (station, kept, _), (cloud, seconds) in zip(items, made, strict=True):
-            kept.cloud = cloud
+        made = side_by_side(make, list(pending.values()), workers)
+        for (station, _), (cloud, seconds) in zip(pending.values(), made, strict=True):
+            self._own[station.key].cloud = cloud
             self._work(station.key).own_seconds += seconds
 
     def band(

@@ -31,7 +31,6 @@ import functools
 import math
 import time
 from collections.abc import Iterable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -58,6 +57,7 @@ from estimation.search.station_maps import (
     StationParams,
     View,
     mutual_ties,
+    side_by_side,
 )
 from mapping.band import Band
 from sensors.geometry import se2
@@ -351,23 +351,21 @@ def _links(
     """:func:`_link` of each (earlier station, station) pair: the events and the records. The
     maps are made first; then the pairs are searched and registered side by side (they only
     read the maps), their answers taken in the pairs' order."""
+    pairs = list(pairs)
+    workers = params.station_search.thread_count()
+    maps.prepare_maps([one for p, s in pairs for one in (s, p)], estimate, ties, workers)
     ready = [
         (p, s, searchable)
         for p, s in pairs
         if (searchable := _searchable(s, p, estimate, maps, ties)) is not None
     ]
-    workers = params.station_search.thread_count()
     maps.prepare_clouds([one for p, s, _ in ready for one in (s, p)], estimate, ties, workers)
 
     def link(item: tuple[Station, Station, tuple[Band, Band, np.ndarray]]) -> _Answer:
         previous, station, searchable = item
         return _link(station, previous, searchable, estimate, maps, ties, params)
 
-    if len(ready) > 1 and workers > 1:
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            answers = list(pool.map(link, ready))
-    else:
-        answers = [link(item) for item in ready]
+    answers = side_by_side(link, ready, workers)
     found = []
     for (_, station, _), answer in zip(ready, answers, strict=True):
         if answer is not None:

@@ -56,7 +56,7 @@ def _sort_hits(
     return n_fresh, n_out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def integrate(
     hits: np.ndarray,
     free_ends: np.ndarray,

@@ -12,6 +12,7 @@ the sweeps it lacks, the estimate and the factors at submission.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import threading
@@ -153,13 +154,16 @@ class ConcurrentLocalizer:
     """At most one station's searches at a time, in a worker process (or inline)."""
 
     def __init__(self, params: StationParams, concurrent: bool = True) -> None:
-        self.params = params
         self._executor: ProcessPoolExecutor | None = None
         if concurrent:
+            # One worker process beside the loop searches on one thread: the loop keeps a core.
+            search = dataclasses.replace(params.station_search, workers=1)
+            params = dataclasses.replace(params, station_search=search)
             self._executor = ProcessPoolExecutor(
                 1, mp_context=multiprocessing.get_context("spawn"),
                 initializer=watch_parent, initargs=(os.getpid(),),
             )  # fmt: skip
+        self.params = params
         self._job: _Job | None = None
         self.done: list[tuple[Localized, float, float]] = []  # result, submitted, collected
         self._session = uuid.uuid4().hex  # the worker's held sweeps and maps are this one's

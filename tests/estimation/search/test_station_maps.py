@@ -234,12 +234,16 @@ def test_links_searched_side_by_side_equal_those_searched_one_by_one(mission) ->
         assert np.array_equal(cloud.points, clouds_3[key].points)
 
 
-def test_clouds_are_prepared_only_with_registration(mission) -> None:
+def test_maps_and_clouds_are_prepared_once_clouds_only_with_registration(mission) -> None:
     stations, factors = mission
     ties = mutual_ties(factors)
     maps = StationMaps(dataclasses.replace(EXACT, registration=None))
     maps.prepare_clouds(stations, dict(TRUTH), ties, workers=2)
-    assert maps.work == {}  # nothing made: no band, no cloud
+    assert {k: w.own_builds for k, w in maps.work.items()} == {s.key: 1 for s in stations}
+    assert maps.cloud(stations[2], dict(TRUTH), ties) is None  # maps made, no cloud
+    seconds = {k: w.own_seconds for k, w in maps.work.items()}
+    maps.prepare_maps(stations, dict(TRUTH), ties, workers=2)  # nothing moved: nothing to do
+    assert {k: w.own_seconds for k, w in maps.work.items()} == seconds
     registered = StationMaps(dataclasses.replace(EXACT, registration=RegistrationParams()))
     registered.prepare_clouds([*stations, *stations], dict(TRUTH), ties, workers=2)
     assert {k: w.own_builds for k, w in registered.work.items()} == {s.key: 1 for s in stations}

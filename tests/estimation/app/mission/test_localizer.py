@@ -165,6 +165,10 @@ def test_a_spawned_worker_gives_the_inline_result(two_stations: Case) -> None:
         assert second is not None
         assert (second.station, second.events, second.records) == ("b2", [], [])
         assert [(s, c) for _, s, c in localizer.done] == [(41.0, 42.0), (50.0, 51.0)]
+        # The worker searches on one thread beside the loop; inline, the searches use the CPUs.
+        assert localizer.params.station_search.workers == 1
+        assert ConcurrentLocalizer(PARAMS, concurrent=False).params == PARAMS
+        assert PARAMS.station_search.workers == 0
     finally:
         localizer.close()
     assert localizer._executor is None
