@@ -400,6 +400,26 @@ def scan_links(
     return _links(pairs, estimate, maps, ties, params)
 
 
+#: A loop closure's search: its result, whether the peak is dominant, the overlap, the seconds.
+_Searched = tuple[SearchResult, bool, float, float]
+
+
+@dataclass(frozen=True)
+class _Closure:
+    """A loop closure to search: the station, its anchor and the older stations near it, their
+    bands, the predicted relative pose and its covariance, the window's side and yaw reach."""
+
+    station: Station
+    anchor: Station
+    older: list[Station]
+    local: Band
+    global_: Band
+    predicted: np.ndarray
+    uncertainty: np.ndarray
+    side_m: float
+    reach_rad: float
+
+
 def loop_closures(
     stations: list[Station],
     estimate: dict[int, np.ndarray],
@@ -411,66 +431,96 @@ def loop_closures(
     """Search each station against the older stations near it, in windows around the predicted
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
     becomes a ``Localize`` event. With ``only``, just those stations are searched; ``maps`` as
-    in :func:`station_links`."""
+    in :func:`station_links`. The maps are made in mission order (the older stations' map is
+    appended to), then the searches run side by side, then the registrations."""
     search = params.station_search
+    workers = search.thread_count()
     stations = [s for s in stations if s.key in estimate]
-    events: list[Localize] = []
-    records: list[SearchRecord] = []
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
     relative = relative_covariances(factors, estimate)
     positions = np.array([estimate[s.key][:2] for s in stations], dtype=np.float64).reshape(-1, 2)
+    closures = []
     for n, station in enumerate(stations):
         if only is not None and station.key not in only:
             continue
-        here = estimate[station.key]
         near, distance = _older_near(positions, n)
         if not len(near):
             continue
         older = [stations[k] for k in near]
         anchor = stations[int(near[np.argmin(distance[near])])]
-        anchor_pose = estimate[anchor.key]
         local = maps.band(station, estimate, ties)
         global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:
             continue
-        predicted = se2.between(anchor_pose, here)
         uncertainty = relative(anchor.key, station.key)
         sigma_m = math.sqrt(max(0.0, float(np.linalg.eigvalsh(uncertainty[:2, :2])[-1])))
         sigma_rad = math.sqrt(max(0.0, float(uncertainty[2, 2])))
-        side = float(np.clip(2 * _LOOP_SIGMAS * sigma_m, *_LOOP_WINDOW_M))
-        reach = float(np.clip(_LOOP_SIGMAS * sigma_rad, *_LOOP_YAW_RAD))
+        closures.append(_Closure(
+            station, anchor, older, local, global_,
+            se2.between(estimate[anchor.key], estimate[station.key]), uncertainty,
+            float(np.clip(2 * _LOOP_SIGMAS * sigma_m, *_LOOP_WINDOW_M)),
+            float(np.clip(_LOOP_SIGMAS * sigma_rad, *_LOOP_YAW_RAD)),
+        ))  # fmt: skip
+    searched = side_by_side(lambda c: _closure_search(c, search), closures, workers)
+    found = [(c, f) for c, f in zip(closures, searched, strict=True) if f is not None]
+    wanted = [(c, f) for c, f in found if f[1] and f[2] >= _MIN_OVERLAP]  # dominant, overlapping
+    maps.prepare_clouds([s for c, _ in wanted for s in (c.station, *c.older)], estimate, ties,
+                        workers)  # fmt: skip
+
+    def refine(item: tuple[_Closure, _Searched]) -> tuple[_Refined, bool, float]:
+        closure, (result, _, _, _) = item
         started = time.perf_counter()
-        try:
-            result, on_edge = _search_near(local, global_, search, predicted, side, reach)
-        except EstimationError:
-            continue
-        # Dominant alone and beside the prediction: in a repeating room chance picks a repeat.
-        dominant = (result.is_dominant(search.dominance_ratio) and not on_edge
-                    and result.dominant_given(predicted, uncertainty, search))  # fmt: skip
-        overlap = overlap_fraction(local, global_, result.pose)
+        refined = _refined(result, maps.cloud(closure.station, estimate, ties),
+                           maps.older_cloud(closure.anchor, closure.older, estimate, ties),
+                           params)  # fmt: skip
+        measured = result.covariance if refined.covariance is None else refined.covariance
+        offset = se2.log(se2.between(closure.predicted, refined.pose))
+        covariance = closure.uncertainty + measured
+        chi2_value = float(offset @ np.linalg.solve(covariance, offset))
+        return refined, refined.sound and chi2_value < _LOOP_GATE, time.perf_counter() - started
+
+    refinements = dict(zip((id(c) for c, _ in wanted), side_by_side(refine, wanted, workers),
+                           strict=True))  # fmt: skip
+    events: list[Localize] = []
+    records: list[SearchRecord] = []
+    for closure, (result, dominant, overlap, seconds) in found:
         refined = _Refined(np.asarray(result.pose, dtype=float), None, None, False)
         use = False
-        if dominant and overlap >= _MIN_OVERLAP:
-            refined = _refined(result, maps.cloud(station, estimate, ties),
-                               maps.older_cloud(anchor, older, estimate, ties), params)  # fmt: skip
-            measured = result.covariance if refined.covariance is None else refined.covariance
-            offset = se2.log(se2.between(predicted, refined.pose))
-            chi2_value = float(offset @ np.linalg.solve(uncertainty + measured, offset))
-            use = refined.sound and chi2_value < _LOOP_GATE
+        if id(closure) in refinements:
+            refined, use, more = refinements[id(closure)]
+            seconds += more
         if use:
-            events.append(refined.event(station, anchor, None, result))
-        maps.searched(station, time.perf_counter() - started)
+            events.append(refined.event(closure.station, closure.anchor, None, result))
+        maps.searched(closure.station, seconds)
         records.append(
             SearchRecord(
-                station=station.label, against=anchor.label, band="ceiling", kind="loop",
-                peak_ratio=float(result.peak_ratio), dominant=dominant,
-                used=use, seconds=time.perf_counter() - started, time_s=station.time_s,
-                overlap=overlap, picture=SearchPicture.of(result, local, global_),
+                station=closure.station.label, against=closure.anchor.label, band="ceiling",
+                kind="loop", peak_ratio=float(result.peak_ratio), dominant=dominant,
+                used=use, seconds=seconds, time_s=closure.station.time_s,
+                overlap=overlap, picture=SearchPicture.of(result, closure.local, closure.global_),
                 **refined.record_fields(result),
             )
         )  # fmt: skip
     return events, records
+
+
+def _closure_search(closure: _Closure, search: SearchParams) -> _Searched | None:
+    """A loop closure's search: the result, whether its peak is dominant, the overlap at it,
+    and the seconds taken; None when the search cannot run."""
+    started = time.perf_counter()
+    try:
+        result, on_edge = _search_near(closure.local, closure.global_, search, closure.predicted,
+                                       closure.side_m, closure.reach_rad)  # fmt: skip
+    except EstimationError:
+        return None
+    # Dominant alone and beside the prediction: in a repeating room chance picks a repeat.
+    dominant = (
+        result.is_dominant(search.dominance_ratio) and not on_edge
+        and result.dominant_given(closure.predicted, closure.uncertainty, search)
+    )  # fmt: skip
+    overlap = overlap_fraction(closure.local, closure.global_, result.pose)
+    return result, dominant, overlap, time.perf_counter() - started
 
 
 def _older_near(positions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
