@@ -448,7 +448,7 @@ def loop_closures(
         if not len(near):
             continue
         older = [stations[k] for k in near]
-        anchor = stations[int(near[np.argmin(distance[near])])]
+        anchor = stations[_anchor(near, distance, stations, ties)]
         local = maps.band(station, estimate, ties)
         global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:
@@ -521,6 +521,18 @@ def _closure_search(closure: _Closure, search: SearchParams) -> _Searched | None
     )  # fmt: skip
     overlap = overlap_fraction(closure.local, closure.global_, result.pose)
     return result, dominant, overlap, time.perf_counter() - started
+
+
+def _anchor(
+    near: np.ndarray, distance: np.ndarray, stations: list[Station], ties: dict[int, set[int]]
+) -> int:
+    """The loop closure's anchor among the older stations ``near``: the nearest whose own pose a
+    mutual observation ties, else the nearest. The closure is measured in the anchor's frame,
+    so an anchor whose heading rests on odometry alone (a pivot's untied turn, 1.5° off in a
+    generated building) passes its error on to the factor, which then holds it there."""
+    tied = near[[stations[k].key in ties for k in near]]
+    pool = tied if len(tied) else near
+    return int(pool[np.argmin(distance[pool])])
 
 
 def _older_near(positions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -404,3 +404,15 @@ def test_loop_closures_searched_side_by_side_equal_those_searched_one_by_one() -
     for robot, index, anchor, pose, _ in events:
         truth_pose = se2.between(truth[pose_key(*anchor)], truth[pose_key(robot, index)])
         assert np.hypot(*(np.array(pose[:2]) - truth_pose[:2])) < 0.03
+
+
+def test_a_loop_closure_is_anchored_on_the_nearest_tied_station(mission) -> None:
+    """An older station whose heading rests on odometry alone (no mutual observation) is no
+    anchor while a tied one is near: the closure's frame would carry its error."""
+    stations, factors = mission
+    ties = mutual_ties(factors[1:])  # station 0 (a0) untied
+    near = np.array([0, 1, 2])
+    distance = np.array([0.5, 2.0, 1.0, 9.0])
+    assert stations_module._anchor(near, distance, stations, ties) == 2
+    assert stations_module._anchor(near, distance, stations, mutual_ties(factors)) == 0
+    assert stations_module._anchor(np.array([0]), distance, stations, ties) == 0  # none tied
