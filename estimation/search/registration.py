@@ -68,6 +68,11 @@ _MIN_POINTS = 50
 _MAX_SLIDE = 2.0
 #: Converged when an iteration moves the pose by less than this (m, and rad × 1 m).
 _STEP_TOLERANCE = 1e-4
+#: A direction whose curvature is below this share of the strongest one is one the points
+#: hardly constrain (a corridor's axis): the pose may creep along it for every iteration there
+#: is. Settled in the others, the registration has converged there and measures nothing along
+#: it: its covariance there is at least ``max_distance_m`` (the registration's reach).
+_DEGENERATE = 1e-2
 #: Source points farther than ``max_distance_m`` plus this from every target point at some pose
 #: are not looked up again until the pose has moved a point by more than this (m).
 _OVERLAP_MARGIN_M = 0.15
@@ -276,6 +281,7 @@ class Registration:
     converged: bool
     inlier_points: int = 0  # source points within ``inlier_m`` of a target
     moved_m: float = 0.0  # how far (in the plane) the pose ended from its seed
+    creeping: bool = False  # converged but along one direction the points do not hold it
 
     def accepted(self, params: RegistrationParams) -> bool:
         """Converged, with enough inliers, and not slid away from its seed: the seed is good to
@@ -312,7 +318,7 @@ def register(
         return None
     lookup = _Near(target, params.max_distance_m)
     pose = seed.copy()
-    converged = False
+    converged = creeping = False
     iterations = 0
     # While iterating, residuals count with the Huber scale as their sigma (the measured one is
     # known only once aligned; before, it would let the seed hold the pose back).
@@ -335,10 +341,9 @@ def register(
                 return None
             H, g, _, _ = found
             offset = _offset(pose, seed)
+            system = H / scale + information + 1e-9 * np.eye(3)
             try:
-                step = -np.linalg.solve(
-                    H / scale + information + 1e-9 * np.eye(3), g / scale + information @ offset
-                )
+                step = -np.linalg.solve(system, g / scale + information @ offset)
             except np.linalg.LinAlgError:
                 return None
             pose = pose + step
@@ -347,6 +352,9 @@ def register(
                 break  # it slid: refused however it ends (office_loop: 6 of 45, 40 iterations)
             if max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOLERANCE:
                 converged = True
+                break
+            if _creeping(system, step):
+                converged = creeping = True
                 break
         if not converged:
             break
@@ -368,10 +376,30 @@ def register(
     covariance = 0.5 * (covariance + covariance.T)
     floor = np.diag([params.min_sigma_m**2, params.min_sigma_m**2, params.min_sigma_rad**2])
     covariance = _floored(covariance, floor)
+    if creeping:
+        covariance = _unmeasured(covariance, H, params.max_distance_m)
     rms = math.sqrt(float(np.mean(residuals**2)))
     moved = math.hypot(pose[0] - seed[0], pose[1] - seed[1])
     return Registration(pose, covariance, inliers, rms, iterations, converged, len(residuals),
-                        moved)  # fmt: skip
+                        moved, creeping)  # fmt: skip
+
+
+def _creeping(system: np.ndarray, step: np.ndarray) -> bool:
+    """The step is below the tolerance along every direction of ``system`` but its weakest,
+    which ``system`` hardly constrains (``_DEGENERATE``): the pose only creeps along that."""
+    values, vectors = np.linalg.eigh(system)
+    if values[0] > _DEGENERATE * values[-1]:
+        return False
+    return bool(np.all(np.abs(vectors[:, 1:].T @ step) < _STEP_TOLERANCE))
+
+
+def _unmeasured(covariance: np.ndarray, H: np.ndarray, sigma_m: float) -> np.ndarray:
+    """``covariance`` with a standard deviation of at least ``sigma_m`` along the horizontal
+    direction ``H`` constrains least (a rank-one addition: it stays positive definite)."""
+    _, vectors = np.linalg.eigh(H[:2, :2])
+    u = np.array([vectors[0, 0], vectors[1, 0], 0.0])
+    short = sigma_m**2 - float(u @ covariance @ u)
+    return covariance + max(short, 0.0) * np.outer(u, u) if short > 0 else covariance
 
 
 def _profiled(

@@ -9,6 +9,7 @@ import pytest
 
 from estimation.errors import EstimationError
 from estimation.posegraph.events import checked_covariance
+from estimation.search import registration
 from estimation.search.registration import (
     Cloud,
     RegistrationParams,
@@ -89,6 +90,49 @@ def test_a_corridor_is_uncertain_along_its_axis_and_a_prior_holds_the_seed_there
     assert abs(held.pose[0] - seed[0]) < 0.01
     assert abs(held.pose[1]) < 0.01  # the prior 3 cm off moves it by 7 mm
     assert np.sqrt(held.covariance[0, 0]) <= 0.0201
+
+
+def test_a_corridor_registration_that_only_creeps_along_the_axis_has_converged() -> None:
+    """Along a corridor without features the pose creeps along the axis for every iteration
+    there is: settled across it and in yaw, the registration has converged (its heading is what
+    a link across an untied turn needs), and says it measured nothing along the axis."""
+    rng = np.random.default_rng(5)
+    target = Cloud.of(_room(rng, corridor=True), PARAMS)
+    source = Cloud.of(_room(rng, corridor=True), PARAMS)
+    seed = np.array([0.12, 0.04, math.radians(1.5)])
+    found = register(source, target, seed, PARAMS)
+    assert found is not None
+    assert found.converged
+    assert found.creeping
+    assert found.accepted(PARAMS)
+    assert found.iterations < PARAMS.iterations
+    assert abs(found.pose[1]) < 0.005
+    assert abs(found.pose[2]) < math.radians(0.05)
+    sx, sy, syaw = np.sqrt(np.diag(found.covariance))
+    assert sx >= PARAMS.max_distance_m * 0.999  # nothing measured along the axis
+    assert sy < 0.02
+    assert syaw < math.radians(0.5)
+    checked_covariance(found.covariance, "registration")
+    # A room holds the pose in every direction: converged without creeping.
+    a, b = np.array([0.3, -0.2, 0.1]), np.array([-0.8, 0.6, 0.9])
+    room = register(Cloud.of(_seen_from(_room(rng), b), PARAMS),
+                    Cloud.of(_seen_from(_room(rng), a), PARAMS),
+                    se2.between(a, b) + np.array([0.1, 0.1, 0.02]), PARAMS)  # fmt: skip
+    assert room is not None
+    assert room.converged
+    assert not room.creeping
+
+
+def test_creeping_needs_a_weak_direction_and_a_settled_rest() -> None:
+    corridor = np.diag([1e-4, 1.0, 1.0])
+    assert registration._creeping(corridor, np.array([0.01, 1e-5, 1e-5]))
+    assert not registration._creeping(corridor, np.array([0.01, 1e-3, 1e-5]))
+    assert not registration._creeping(np.eye(3), np.array([0.01, 1e-5, 1e-5]))
+    covariance = np.diag([0.01, 0.0001, 1e-6])
+    wider = registration._unmeasured(covariance, np.diag([1e-3, 1.0, 1.0]), 0.3)
+    assert wider[0, 0] == pytest.approx(0.09)
+    assert wider[1, 1] == covariance[1, 1]
+    assert registration._unmeasured(wider, np.diag([1e-3, 1.0, 1.0]), 0.2) is wider
 
 
 def _slab_face(rng: np.random.Generator, x: float, n: int = 3000) -> np.ndarray:
