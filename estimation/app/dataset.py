@@ -438,3 +438,27 @@ def relocalization_dwells(dataset: Dataset, sweeps: list[Sweep]) -> list[Dwell]:
         Dwell(float(dataset.events[n]["t_s"]), tuple(s.view() for s in sweeps if s.dwell == n))
         for n in sorted(_relocalization_numbers(dataset.events))
     ]
+
+
+def next_map_seconds(entries: list[dict[str, Any]]) -> dict[str, float | None]:
+    """Per reference station of a mission's event log (``entries``): how long (mission time)
+    the next local map took to make — the time its concurrent global localization had; None
+    for the last station."""
+    starts = [
+        (f"{s['reference']}{s['poses'][s['reference']]}", float(s["t_s"]))
+        for s in entries
+        if s["event"] == "dwell" and s.get("reference") and s.get("phase") != "relocalize"
+    ]
+    order: list[tuple[str, float]] = []
+    for label, t in starts:
+        if not order or order[-1][0] != label:
+            order.append((label, t))
+    end = float(entries[-1].get("end_s", entries[-1]["t_s"])) if entries else 0.0
+    out: dict[str, float | None] = {}
+    for n, (label, _) in enumerate(order):
+        if n + 1 == len(order):
+            out[label] = None  # no local map was made after the last station's
+            continue
+        finish = order[n + 2][1] if n + 2 < len(order) else end
+        out[label] = finish - order[n + 1][1]
+    return out

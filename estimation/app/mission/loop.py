@@ -34,6 +34,7 @@ from estimation import __version__
 from estimation.app.config import Config
 from estimation.app.dataset import (
     LmsDecoder,
+    next_map_seconds,
     stations_of,
     sweeps_before_changes,
 )
@@ -67,6 +68,9 @@ Progress = Callable[[str], None]
 #: it goes on at a frontier never tried if one is left, and ends if none is: what frontiers are
 #: left cannot be resolved from the floor the robots can reach.
 _STALL_M2, _STALL_STATIONS = 2.0, 10
+#: Frontiers given up in a row because no pair of robots found a scan pose toward them (a goal
+#: refused on a leg the estimated map shows free, a doorway too tight) before exploring ends.
+_UNREACHED = 3
 
 
 @dataclass
@@ -333,6 +337,7 @@ class MissionLoop:
             explorer.taken.append(self.pose(r))
         reason = f"station budget ({auto.stations}) spent"
         known: list[float] = []  # known floor (m²) after each station
+        unreached = 0  # frontiers given up in a row for want of a scan pose
         for k in range(auto.stations):
             self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
             if self.progress is not None:
@@ -358,12 +363,19 @@ class MissionLoop:
                 reference, mapper = other_reference, other_mapper
                 self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
                 flown = self._station(k, explorer, reference, mapper, frontier)
+            if flown is None and frontier is not None and k > 0 and unreached < _UNREACHED:
+                # Generated building 17 ended at half its floor here: every goal toward one
+                # frontier was refused on the same leg. Another frontier may still be reached.
+                explorer.given_up.append(np.array(frontier.centroid_xy, dtype=float))
+                unreached += 1
+                continue
             if flown is None:
                 where = "at the start " if k == 0 else ""
                 reason = f"no mapper pose around robot {reference} {where}sees its beacon"
                 if k > 0:
                     reason = f"no mapper pose around robot {reference} or {mapper} sees its beacon"
                 break
+            unreached = 0
             at, scans, station = flown
             self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
             self._station_done(station)
@@ -525,7 +537,7 @@ class MissionLoop:
 
     def figures(self, stop_reason: str, fleet_counts: dict[str, Any]) -> dict[str, Any]:
         work = np.array(self.work_s) if self.work_s else np.zeros(1)
-        next_map = self._next_map_seconds()
+        next_map = next_map_seconds(self.entries)
         localizations = []
         for item in self.localizations:
             budget = next_map.get(item["station"])
@@ -554,28 +566,6 @@ class MissionLoop:
             "stations": self.trace,
             **{k: v for k, v in fleet_counts.items() if k != "refused_goals"},
         }  # fmt: skip
-
-    def _next_map_seconds(self) -> dict[str, float | None]:
-        """Per station: how long (mission time) the next local map took to make — the time
-        its concurrent global localization had."""
-        starts = [
-            (f"{s['reference']}{s['poses'][s['reference']]}", float(s["t_s"]))
-            for s in self.entries
-            if s["event"] == "dwell" and s.get("reference") and s.get("phase") != "relocalize"
-        ]
-        order: list[tuple[str, float]] = []
-        for label, t in starts:
-            if not order or order[-1][0] != label:
-                order.append((label, t))
-        end = float(self.entries[-1].get("end_s", self.entries[-1]["t_s"])) if self.entries else 0
-        out: dict[str, float | None] = {}
-        for n, (label, _) in enumerate(order):
-            if n + 1 == len(order):
-                out[label] = None  # no local map was made after the last station's
-                continue
-            finish = order[n + 2][1] if n + 2 < len(order) else end
-            out[label] = finish - order[n + 1][1]
-        return out
 
     def finish(self, out: Path, stop_reason: str, dataset_path: Path | None = None) -> LoopResult:
         """Write the result from the recorded dataset (as ``coopmap isam`` would);

@@ -206,3 +206,37 @@ def test_a_mission_that_fails_with_a_bug_keeps_nothing(
         run_simulation(write_mission(tmp_path), tmp_path / "dataset")
     assert not (tmp_path / "dataset").exists()
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.parametrize(("failing", "reason"), [
+    ({1}, "station budget (5) spent"),
+    ({1, 2, 3, 4}, "no mapper pose around robot"),
+])  # fmt: skip
+def test_a_frontier_no_pair_reaches_is_given_up_for_another(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, failing: set[int], reason: str
+) -> None:
+    """When neither pair finds a scan pose toward a frontier (every goal refused on a leg the
+    estimated map shows free), the loop gives that frontier up and explores on; after three
+    such frontiers in a row, a fourth ends the mission."""
+    original = MissionLoop._station
+    tried: list[tuple[int, str]] = []
+
+    def station(self: MissionLoop, k: int, explorer: object, reference: str, mapper: str,
+                frontier: object) -> object:  # fmt: skip
+        tried.append((k, reference))
+        if k in failing:
+            return None
+        return original(self, k, explorer, reference, mapper, frontier)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(MissionLoop, "_station", station)
+    path = write_mission(tmp_path, stations=5, scans_per_station=1)
+    document = yaml.safe_load(path.read_text(encoding="utf-8"))
+    del document["changes"]
+    path.write_text(yaml.safe_dump(document), encoding="utf-8")
+    result = run_simulation(path, tmp_path / "dataset")
+    assert result.loop is not None
+    assert result.loop["stop_reason"].startswith(reason)
+    given_up = result.loop["given_up_frontiers"] + result.loop["retried_frontiers"]
+    assert len(given_up) >= 1
+    assert {k for k, _ in tried} >= failing | {0}
+    assert sum(1 for k, _ in tried if k == 1) == 2  # the pair, then the pair swapped
