@@ -10,11 +10,11 @@ import pytest
 from estimation.errors import EstimationError
 from estimation.posegraph.events import checked_covariance
 from estimation.search import registration
+from estimation.search.normals import jacobi3 as _jacobi3
 from estimation.search.registration import (
     Cloud,
     RegistrationParams,
     _gauss_newton,
-    _jacobi3,
     _moved,
     _Near,
     _normals,
@@ -128,6 +128,8 @@ def test_creeping_needs_a_weak_direction_and_a_settled_rest() -> None:
     assert registration._creeping(corridor, np.array([0.01, 1e-5, 1e-5]))
     assert not registration._creeping(corridor, np.array([0.01, 1e-3, 1e-5]))
     assert not registration._creeping(np.eye(3), np.array([0.01, 1e-5, 1e-5]))
+    turning = np.diag([1.0, 1.0, 1e-4])  # the weak direction is a turn: never converged so
+    assert not registration._creeping(turning, np.array([1e-5, 1e-5, 0.01]))
     covariance = np.diag([0.01, 0.0001, 1e-6])
     wider = registration._unmeasured(covariance, np.diag([1e-3, 1.0, 1.0]), 0.3)
     assert wider[0, 0] == pytest.approx(0.09)
