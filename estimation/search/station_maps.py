@@ -367,16 +367,20 @@ class StationMaps:
         work.own_builds += 1
         return made
 
-    def prepare_maps(
+    def prepare(
         self,
         stations: Iterable[Station],
         estimate: dict[int, np.ndarray],
         ties: dict[int, set[int]],
         workers: int = 1,
+        clouds: bool = False,
     ) -> None:
-        """Fuse the maps of ``stations`` not made yet (or whose views moved), up to ``workers``
-        at a time (the fusion kernel releases the GIL); each is the one :meth:`band` would
-        make now."""
+        """Make the maps of ``stations`` not made yet (or whose views moved) and, with
+        ``clouds`` (and registration configured), their registration clouds, up to ``workers``
+        at a time, so that searches run side by side afterwards only read the maps. Fusion,
+        the clouds' neighbour queries and their normals are compiled kernels that release the
+        GIL; each map and cloud is the one :meth:`band` and :meth:`cloud` would make now."""
+        stations = list(stations)
         stale: dict[int, tuple[Station, list[View], np.ndarray]] = {}
         for station in stations:
             wanted = self._own_wanted(station, estimate, ties)
@@ -386,22 +390,8 @@ class StationMaps:
                              workers)  # fmt: skip
         for (station, views, _), (made, seconds) in zip(stale.values(), fused, strict=True):
             self._keep_own(station, views, made, seconds)
-
-    def prepare_clouds(
-        self,
-        stations: Iterable[Station],
-        estimate: dict[int, np.ndarray],
-        ties: dict[int, set[int]],
-        workers: int = 1,
-    ) -> None:
-        """Make the clouds of ``stations`` not made yet (their maps first), up to ``workers`` at
-        a time, so that searches run side by side afterwards only read the maps. The clouds'
-        neighbour queries and normals are compiled kernels that release the GIL; each cloud is
-        the one :meth:`cloud` would make now."""
-        stations = list(stations)
-        self.prepare_maps(stations, estimate, ties, workers)
         registration = self.params.registration
-        if registration is None:
+        if not clouds or registration is None:
             return
         pending: dict[int, tuple[Station, list[View]]] = {}
         for station in stations:
@@ -416,8 +406,8 @@ class StationMaps:
                                    registration)  # fmt: skip
             return cloud, time.perf_counter() - started
 
-        made = side_by_side(make, list(pending.values()), workers)
-        for (station, _), (cloud, seconds) in zip(pending.values(), made, strict=True):
+        clouds_made = side_by_side(make, list(pending.values()), workers)
+        for (station, _), (cloud, seconds) in zip(pending.values(), clouds_made, strict=True):
             self._own[station.key].cloud = cloud
             self._work(station.key).own_seconds += seconds
 

@@ -353,13 +353,14 @@ def _links(
     read the maps), their answers taken in the pairs' order."""
     pairs = list(pairs)
     workers = params.station_search.thread_count()
-    maps.prepare_maps([one for p, s in pairs for one in (s, p)], estimate, ties, workers)
+    maps.prepare([one for p, s in pairs for one in (s, p)], estimate, ties, workers)
     ready = [
         (p, s, searchable)
         for p, s in pairs
         if (searchable := _searchable(s, p, estimate, maps, ties)) is not None
     ]
-    maps.prepare_clouds([one for p, s, _ in ready for one in (s, p)], estimate, ties, workers)
+    maps.prepare([one for p, s, _ in ready for one in (s, p)], estimate, ties, workers,
+                 clouds=True)  # fmt: skip
 
     def link(item: tuple[Station, Station, tuple[Band, Band, np.ndarray]]) -> _Answer:
         previous, station, searchable = item
@@ -465,8 +466,8 @@ def loop_closures(
     searched = side_by_side(lambda c: _closure_search(c, search), closures, workers)
     found = [(c, f) for c, f in zip(closures, searched, strict=True) if f is not None]
     wanted = [(c, f) for c, f in found if f[1] and f[2] >= _MIN_OVERLAP]  # dominant, overlapping
-    maps.prepare_clouds([s for c, _ in wanted for s in (c.station, *c.older)], estimate, ties,
-                        workers)  # fmt: skip
+    maps.prepare([s for c, _ in wanted for s in (c.station, *c.older)], estimate, ties, workers,
+                 clouds=True)  # fmt: skip
 
     def refine(item: tuple[_Closure, _Searched]) -> tuple[_Refined, bool, float]:
         closure, (result, _, _, _) = item

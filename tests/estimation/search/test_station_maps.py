@@ -238,20 +238,20 @@ def test_maps_and_clouds_are_prepared_once_clouds_only_with_registration(mission
     stations, factors = mission
     ties = mutual_ties(factors)
     maps = StationMaps(dataclasses.replace(EXACT, registration=None))
-    maps.prepare_clouds(stations, dict(TRUTH), ties, workers=2)
+    maps.prepare(stations, dict(TRUTH), ties, workers=2, clouds=True)
     assert {k: w.own_builds for k, w in maps.work.items()} == {s.key: 1 for s in stations}
     assert maps.cloud(stations[2], dict(TRUTH), ties) is None  # maps made, no cloud
     seconds = {k: w.own_seconds for k, w in maps.work.items()}
-    maps.prepare_maps(stations, dict(TRUTH), ties, workers=2)  # nothing moved: nothing to do
+    maps.prepare(stations, dict(TRUTH), ties, workers=2)  # nothing moved: nothing to do
     assert {k: w.own_seconds for k, w in maps.work.items()} == seconds
     registered = StationMaps(dataclasses.replace(EXACT, registration=RegistrationParams()))
-    registered.prepare_clouds([*stations, *stations], dict(TRUTH), ties, workers=2)
+    registered.prepare([*stations, *stations], dict(TRUTH), ties, workers=2, clouds=True)
     assert {k: w.own_builds for k, w in registered.work.items()} == {s.key: 1 for s in stations}
     made = registered.cloud(stations[2], dict(TRUTH), ties)
     assert made is not None
     assert len(made) > 1000
     untied = [Station("c", 0, 0.0, (view_at("a", 0),))]  # its view has no pose: nothing to make
-    registered.prepare_clouds(untied, {}, ties, workers=2)
+    registered.prepare(untied, {}, ties, workers=2, clouds=True)
     assert pose_key("c", 0) not in registered.work
 
 
