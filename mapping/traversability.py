@@ -8,6 +8,13 @@ unknown column either: it never drives into what nobody has seen. **Frontier** c
 cells that reach to within one cell beyond the robot's radius of unknown floor that borders
 seen free floor (not of the unknown far side of a wall); connected
 frontier cells form a frontier, and a frontier reachable from the robot is a place to look next.
+
+**Rooms** are parts of the drivable space that narrow passages (doorways) set apart: at some
+clearance level the cells at least that far from every obstacle and unknown column fall into
+separate cores, and a core that stays wide well above that level is a room rather than a wide
+spot of a corridor (its clearance persists; a corridor's pieces vanish just above the level that
+parts them). A room nobody stood in is a place to go once no frontier is left: a room seen
+whole through its doors has no frontier, yet it was never entered.
 """
 
 from __future__ import annotations
@@ -27,11 +34,13 @@ from sensors.sim.planner import FreeSpace
 __all__ = [
     "FloorMap",
     "Frontier",
+    "Room",
     "drivable_space",
     "floor_map",
     "frontiers",
     "large_unknown",
     "line_of_sight",
+    "unvisited_rooms",
 ]
 
 
@@ -61,6 +70,19 @@ class Frontier:
     cells: np.ndarray  # (N, 2) (row, col)
     centroid_xy: np.ndarray  # (2,) map frame
     size: int
+
+
+@dataclass(frozen=True)
+class Room:
+    """A room's core: ``cells`` (N, 2) (row, col) farther than ``level_m`` from every obstacle
+    and unknown column, their mean ``centroid_xy`` (map frame), ``size`` cells, and the drivable
+    floor within reach of the core, ``area_m2``."""
+
+    cells: np.ndarray
+    centroid_xy: np.ndarray
+    size: int
+    level_m: float
+    area_m2: float
 
 
 def floor_map(
@@ -173,6 +195,78 @@ def _passable_unknown(floor: FloorMap, radius_m: float, min_unknown_m2: float) -
     large[np.concatenate([grown[0], grown[-1], grown[:, 0], grown[:, -1]])] = True
     large[0] = False
     return np.asarray(large[labels])
+
+
+def unvisited_rooms(
+    space: FreeSpace,
+    stood_xy: np.ndarray,
+    *,
+    max_level_m: float,
+    persistence_m: float,
+    min_area_m2: float,
+    reach_m: float = 0.2,
+) -> list[Room]:
+    """The rooms of the drivable space (see the module's docstring) in which no point of
+    ``stood_xy`` (N, 2) lies, largest first.
+
+    The clearance levels run from one cell above the drivable space's smallest clearance ``c0``
+    up to ``c0 + max_level_m`` in half cells. At each level a connected core (8-connected)
+    counts when its own clearance reaches ``persistence_m`` above the level and the drivable
+    floor within ``level - c0`` of it (where the robot's disc fits, on the core's side of
+    every wall) covers ``min_area_m2``. A point stood in it when it lies within ``level - c0 +
+    reach_m`` of the core. A room is reported at the lowest level at which it is unvisited; a
+    core inside a room already reported is the same room."""
+    free, clearance, res = space.free, space.clearance_m, space.resolution_m
+    stood = np.asarray(stood_xy, dtype=float).reshape(-1, 2)
+    if not (free.any() and math.isfinite(max_level_m) and math.isfinite(persistence_m)):
+        return []
+    if not np.isfinite(stood).all():
+        raise MapError("unvisited rooms: the places stood in must be finite")
+    cells = np.floor((stood - space.lower_xy) / res).astype(np.int64)[:, ::-1]  # (row, col)
+    h, w = free.shape
+    cells = cells[(cells[:, 0] >= 0) & (cells[:, 0] < h) & (cells[:, 1] >= 0) & (cells[:, 1] < w)]
+    base = float(clearance[free].min())
+    found: list[Room] = []
+    reported = np.zeros_like(free)
+    parents, parents_visited = np.zeros(free.shape, dtype=np.int64), np.zeros(1, dtype=bool)
+    for level in np.arange(base + res, base + max_level_m + 1e-9, res / 2):
+        core = free & (clearance >= level)
+        labels, count = ndimage.label(core, structure=np.ones((3, 3)))
+        if not count:
+            break
+        index = np.arange(1, count + 1)
+        peak = np.asarray(ndimage.maximum(clearance, labels, index))
+        grow = level - base
+        distance, (rows, cols) = ndimage.distance_transform_edt(~core, return_indices=True)
+        distance = distance * res
+        owner = labels[rows, cols]
+        area = np.bincount(owner[free & (distance <= grow)], minlength=count + 1) * res * res
+        visited = np.zeros(count + 1, dtype=bool)
+        if len(cells):
+            near = distance[cells[:, 0], cells[:, 1]] <= grow + reach_m
+            visited[owner[cells[near, 0], cells[near, 1]]] = True
+        # A core that is its parent's only core of a room's size is that core, shrunk: it was
+        # visited if its parent was (a robot by the wall stands farther from a smaller core).
+        first = np.zeros(count + 1, dtype=np.int64)
+        first[labels[core]] = parents[core]
+        sized = np.flatnonzero(area >= min_area_m2)
+        children = np.bincount(first[sized], minlength=len(parents_visited))
+        only = (children[first] == 1) & parents_visited[first]
+        visited |= only
+        for label in index:
+            if visited[label] or peak[label - 1] < level + persistence_m:
+                continue
+            if area[label] < min_area_m2:
+                continue
+            mask = labels == label
+            if reported[mask].any():
+                continue
+            reported |= mask
+            room = np.argwhere(mask)
+            centroid = space.lower_xy + (room[:, ::-1].mean(axis=0) + 0.5) * res
+            found.append(Room(room, centroid, len(room), float(level), float(area[label])))
+        parents, parents_visited = labels, visited
+    return sorted(found, key=lambda r: -r.area_m2)
 
 
 def large_unknown(floor: FloorMap, min_unknown_m2: float) -> np.ndarray:

@@ -16,6 +16,7 @@ from mapping.traversability import (
     floor_map,
     frontiers,
     line_of_sight,
+    unvisited_rooms,
 )
 from tests.mapping.conftest import room_scan
 
@@ -286,3 +287,75 @@ def test_line_of_sight_refuses_non_finite_ignored_points() -> None:
         line_of_sight(grid, A, B, ignore_xy=np.array([[np.nan, 1.0]]), ignore_radius_m=0.3)
     with pytest.raises(MapError, match="ignore"):
         line_of_sight(grid, A, B, ignore_xy=np.array([[2.0, 1.0]]), ignore_radius_m=math.nan)
+
+
+def floor_plan(
+    walls: list[tuple[float, float, float, float]], size_m: tuple[float, float]
+) -> FloorMap:
+    """A floor known everywhere, with obstacle boxes (x0, y0, x1, y1) and a wall at its border."""
+    rows, cols = round(size_m[1] / RES), round(size_m[0] / RES)
+    gx, gy = np.meshgrid((np.arange(cols) + 0.5) * RES, (np.arange(rows) + 0.5) * RES)
+    obstacle = np.zeros((rows, cols), dtype=bool)
+    obstacle[[0, -1], :] = True
+    obstacle[:, [0, -1]] = True
+    for x0, y0, x1, y1 in walls:
+        obstacle |= (gx > x0) & (gx < x1) & (gy > y0) & (gy < y1)
+    return FloorMap(obstacle, ~obstacle, np.zeros(2), RES)
+
+
+#: Two 4 m × 4 m rooms side by side, the wall between them at x = 4 with a 1 m door.
+TWO_ROOMS = floor_plan([(4.0, 0.0, 4.1, 1.5), (4.0, 2.5, 4.1, 4.1)], (8.1, 4.1))
+ROOM_LEVELS = {"max_level_m": 0.9, "persistence_m": 0.2, "min_area_m2": 2.0}
+
+
+def test_a_room_behind_a_door_is_unvisited_until_a_robot_stands_in_it() -> None:
+    space = drivable_space(TWO_ROOMS, robot_radius_m=0.3, margin_m=0.05)
+    found = unvisited_rooms(space, np.array([[1.5, 2.0]]), **ROOM_LEVELS)
+    assert len(found) == 1
+    room = found[0]
+    assert 5.6 < room.centroid_xy[0] < 6.5
+    assert 1.6 < room.centroid_xy[1] < 2.4
+    # Parted by the door (its centre lies 0.5 m from the jambs), and the core inside room B.
+    assert 0.5 < room.level_m < 0.75
+    core_x = space.lower_xy[0] + (room.cells[:, 1] + 0.5) * RES
+    assert core_x.min() > 4.1
+    assert room.size == len(room.cells)
+    assert 6.0 < room.area_m2 < 3.4 * 3.4  # room B's drivable floor, at most
+    # A robot in room B, or at its edge by a wall, has been in it.
+    for stood_b in ([6.0, 2.0], [7.6, 3.6], [4.55, 0.5]):
+        assert unvisited_rooms(space, np.array([[1.5, 2.0], stood_b]), **ROOM_LEVELS) == []
+    # In the doorway, not yet; nobody anywhere: both rooms are one place nobody stood in.
+    assert len(unvisited_rooms(space, np.array([[1.5, 2.0], [4.05, 2.0]]), **ROOM_LEVELS)) == 1
+    nobody = unvisited_rooms(space, np.zeros((0, 2)), **ROOM_LEVELS)
+    assert len(nobody) == 1
+    assert 3.5 < nobody[0].centroid_xy[0] < 4.6
+
+
+def test_a_corridor_wide_in_places_is_no_string_of_rooms() -> None:
+    # A 10 m corridor, 2 m wide, 2.6 m wide over one metre in its middle: its pieces part only
+    # just below the corridor's own clearance. A room at its end, through a door, is a room.
+    walls = [(0.0, 0.0, 4.5, 1.0), (5.5, 0.0, 10.0, 1.0), (0.0, 3.0, 4.5, 4.0),
+             (5.5, 3.0, 10.0, 4.0), (4.5, 0.0, 5.5, 0.7), (4.5, 3.3, 5.5, 4.0)]  # fmt: skip
+    corridor = drivable_space(floor_plan(walls, (10.1, 4.0)), robot_radius_m=0.3, margin_m=0.05)
+    assert unvisited_rooms(corridor, np.array([[1.0, 2.0]]), **ROOM_LEVELS) == []
+    door = [(10.0, 0.0, 10.1, 1.5), (10.0, 2.5, 10.1, 4.0)]
+    space = drivable_space(floor_plan(walls + door, (14.0, 4.0)), robot_radius_m=0.3, margin_m=0.05)
+    found = unvisited_rooms(space, np.array([[1.0, 2.0]]), **ROOM_LEVELS)
+    assert [round(float(r.centroid_xy[0])) for r in found] == [12]
+
+
+def test_unvisited_rooms_refuse_bad_input_and_need_drivable_floor() -> None:
+    space = drivable_space(TWO_ROOMS, robot_radius_m=0.3, margin_m=0.05)
+    with pytest.raises(MapError, match="finite"):
+        unvisited_rooms(space, np.array([[math.nan, 2.0]]), **ROOM_LEVELS)
+    assert (
+        unvisited_rooms(space, np.array([[1.5, 2.0]]), **(ROOM_LEVELS | {"max_level_m": math.inf}))
+        == []
+    )
+    walls = FloorMap(
+        np.ones((20, 20), dtype=bool), np.zeros((20, 20), dtype=bool), np.zeros(2), RES
+    )
+    closed = drivable_space(walls, robot_radius_m=0.3)
+    assert unvisited_rooms(closed, np.array([[1.0, 1.0]]), **ROOM_LEVELS) == []
+    # Places off the map count for nothing.
+    assert len(unvisited_rooms(space, np.array([[1.5, 2.0], [-50.0, 2.0]]), **ROOM_LEVELS)) == 1

@@ -12,7 +12,9 @@ which it and a mapper around it see the most unknown space on the way to the nea
 frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
 so that both beacons are in view, that add the most unknown space and bring the pair closer to
 that frontier, less a cost for the path. Poses already taken are not taken again; a frontier
-the pair has failed to shrink from several stations in a row is given up.
+the pair has failed to shrink from several stations in a row is given up. Once no frontier is
+left, the pair goes into the rooms of the estimated map that no robot stood in (a room seen
+whole through its doors has no frontier), nearest first, as it would to a frontier.
 
 A turn in place is measured only by odometry unless a mutual observation ties it, and the
 beacons see each other only between 15° and 45° off each robot's heading. So every turn is
@@ -38,11 +40,13 @@ from mapping.grid import OccupancyGrid
 from mapping.traversability import (
     FloorMap,
     Frontier,
+    Room,
     drivable_space,
     floor_map,
     frontiers,
     large_unknown,
     line_of_sight,
+    unvisited_rooms,
 )
 from sensors.sim.planner import FreeSpace
 
@@ -71,6 +75,10 @@ _SAME_TARGET_M = 1.5
 #: (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
 _MIN_UNKNOWN_M2 = 4.0
+#: Rooms (``mapping.traversability.unvisited_rooms``): parted by passages up to this much
+#: clearance (m) above the drivable space's least, persisting this much above it, with at least
+#: this much drivable floor (m²).
+_ROOM_LEVEL_M, _ROOM_PERSISTENCE_M, _ROOM_M2 = 0.9, 0.2, 2.0
 #: Unknown floor added around the known map, m.
 _BORDER_M = 1.0
 #: A turn is tied in parts of at most this much (a pivot pose must lie 15–45° off the heading
@@ -81,6 +89,10 @@ _MAX_PARTS = 3
 _PIVOT_COST = 200.0
 #: An untied turn costs this much (cells): as much as two pivots.
 _UNTIED_COST = 400.0
+
+
+#: Where the pair goes next: a frontier, or a room nobody stood in.
+Target = Frontier | Room
 
 
 @dataclass(frozen=True)
@@ -138,6 +150,16 @@ class MapView:
         )
         self.geometry = BeaconGeometry(config, line_clear=self._clear)
         self._graph: tuple[object, np.ndarray] | None = None
+        self._rooms: list[Room] | None = None
+
+    def rooms(self) -> list[Room]:
+        """The rooms of the drivable space that no robot stood in (computed once)."""
+        if self._rooms is None:
+            self._rooms = unvisited_rooms(
+                self.space, self.stood, max_level_m=_ROOM_LEVEL_M,
+                persistence_m=_ROOM_PERSISTENCE_M, min_area_m2=_ROOM_M2,
+            )  # fmt: skip
+        return self._rooms
 
     def _clear(self, start: np.ndarray, end: np.ndarray) -> bool:
         try:
@@ -272,21 +294,28 @@ class _Target:
     stale: int = 0
 
 
-def _reachable_frontiers(view: MapView, from_xy: list[np.ndarray]) -> list[tuple[Frontier, float]]:
-    """The frontiers reachable from any of ``from_xy``, each with its path distance (m)."""
+def _reachable_targets(view: MapView, from_xy: list[np.ndarray],
+                       given_up: list[np.ndarray]) -> list[tuple[Target, float]]:  # fmt: skip
+    """The frontiers reachable from any of ``from_xy``, each with its path distance (m); when
+    each of them is among ``given_up`` (or none is left), the unvisited rooms too."""
     starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
     if not starts:
         return []
     reach = view.distances_from(starts)
-    found = frontiers(
+    found: list[Target] = list(frontiers(
         view.floor, view.space, robot_radius_m=view.radius_m,
         min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=_MIN_UNKNOWN_M2,
-    )  # fmt: skip
-    out = []
-    for frontier in found:
-        d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
+    ))  # fmt: skip
+    out: list[tuple[Target, float]] = []
+    for target in found:
+        d = float(np.min(reach[target.cells[:, 0], target.cells[:, 1]]))
         if np.isfinite(d):
-            out.append((frontier, d))
+            out.append((target, d))
+    if all(_among(target, given_up) for target, _ in out):
+        for room in view.rooms():
+            d = float(np.min(reach[room.cells[:, 0], room.cells[:, 1]]))
+            if np.isfinite(d):
+                out.append((room, d))
     return out
 
 
@@ -309,7 +338,7 @@ def _in_the_way(a: np.ndarray, b: np.ndarray, robots: list[np.ndarray],
     return False
 
 
-def _among(frontier: Frontier, centroids: list[np.ndarray]) -> bool:
+def _among(frontier: Target, centroids: list[np.ndarray]) -> bool:
     """The frontier is one of those with these centroids (within 1 m: frontiers move)."""
     return any(math.dist(frontier.centroid_xy, c) < 1.0 for c in centroids)
 
@@ -343,13 +372,14 @@ class Explorer:
             for p in self.taken
         )
 
-    def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Frontier | None:
+    def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Target | None:
         """The frontier the pair works on while it is still reachable and not given up (the
         tracked target); else the reachable frontier nearest (by path) to any of ``from_xy``,
         not given up. When only given-up frontiers are left, the nearest of them: the first
         time each is counted as retried (the map has grown since); after that the stall rule
-        of the loop decides when exploring ends, not this one. None when no reachable frontier
-        is left at all.
+        of the loop decides when exploring ends, not this one. The rooms nobody stood in count
+        as frontiers once every frontier left was given up. None when no reachable frontier or
+        unvisited room is left at all.
 
         Keeping the target matters: the two robots stand a few metres apart and swap roles at
         every station, and the frontier nearest to the pair flipped between two sides of a room
@@ -360,7 +390,7 @@ class Explorer:
         best, best_m = None, math.inf
         kept, kept_m = None, math.inf
         given_best, given_m = None, math.inf
-        for frontier, d in _reachable_frontiers(view, from_xy):
+        for frontier, d in _reachable_targets(view, from_xy, self.given_up):
             if _among(frontier, self.given_up):
                 if d < given_m:
                     given_best, given_m = frontier, d
@@ -388,9 +418,9 @@ class Explorer:
             self.given_up.append(self.target.centroid.copy())
             self.target = None
         tried = [*self.given_up, *self.retried]
-        return any(not _among(f, tried) for f, _ in _reachable_frontiers(view, from_xy))
+        return any(not _among(f, tried) for f, _ in _reachable_targets(view, from_xy, tried))
 
-    def progress(self, frontier: Frontier | None, distance_m: float, view: MapView) -> None:
+    def progress(self, frontier: Target | None, distance_m: float, view: MapView) -> None:
         """Track the target frontier across stations; give it up when it stops yielding: the
         robots came no nearer (by ``_PROGRESS_M``) and the known floor around it grew by less
         than ``_PROGRESS_M2`` (a frontier that recedes as a room is mapped is progress)."""
@@ -412,7 +442,7 @@ class Explorer:
             self.given_up.append(t.centroid.copy())
             self.target = None
 
-    def _goal_field(self, view: MapView, frontier: Frontier | None) -> np.ndarray:
+    def _goal_field(self, view: MapView, frontier: Target | None) -> np.ndarray:
         if frontier is None:
             return np.zeros(view.space.free.shape)
         centres = view.floor.lower_xy + (frontier.cells[:, ::-1] + 0.5) * view.floor.resolution_m
@@ -443,7 +473,7 @@ class Explorer:
         return out
 
     def heading(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
-                others: list[np.ndarray], frontier: Frontier | None,
+                others: list[np.ndarray], frontier: Target | None,
                 look_first: bool = False) -> TurnPlan | None:  # fmt: skip
         """The reference's turn for its next station, or None if from no heading a mapper pose
         around it would see its beacon. With ``look_first``, a heading facing enough unexplored
@@ -555,7 +585,7 @@ class Explorer:
         )
 
     def scan_pose(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
-                  others: list[np.ndarray], frontier: Frontier | None,
+                  others: list[np.ndarray], frontier: Target | None,
                   exclude: list[np.ndarray]) -> ScanGoal | None:  # fmt: skip
         """The mapper's next scan pose around the reference and its path, or None."""
         start = view.free_near(mapper[:2])

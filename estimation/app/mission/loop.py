@@ -52,6 +52,7 @@ from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import IncrementalSmoother
 from estimation.search.stations import records_json
 from mapping.errors import MapError
+from mapping.traversability import Room
 from sensors.atomic import write_text_atomic
 from sensors.geometry import se2
 from sensors.lms200.capture import CaptureWriter
@@ -352,7 +353,7 @@ class MissionLoop:
             ref_pose, map_pose = self.pose(reference), self.pose(mapper)
             frontier = explorer.frontier(view, [ref_pose[:2], map_pose[:2]])
             if frontier is None and k > 0:
-                reason = "no reachable frontier left"
+                reason = "no reachable frontier or unvisited room left"
                 break
             flown = self._station(k, explorer, reference, mapper, frontier)
             for other_reference, other_mapper in self._other_pairs(reference, mapper):
@@ -450,6 +451,7 @@ class MissionLoop:
             "pose": as_spec(self.pose(reference)), "scans": len(scans),
             "frontier": None if frontier is None else [round(float(v), 2)
                                                        for v in frontier.centroid_xy],
+            "room": isinstance(frontier, Room),  # a room nobody stood in, not a frontier
             "refused": len(self.refused),
         })  # fmt: skip
         return (at, scans, station) if scans else None

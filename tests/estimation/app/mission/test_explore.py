@@ -392,10 +392,10 @@ def test_a_turn_only_to_look_may_be_taken_untied(
     tied heading by more than the untied cost: otherwise the robot at the front of a pair keeps
     facing back (generated building 0: 20 stations to cross a 3.3 m × 4.8 m office, 5 with
     this)."""
-    from estimation.app.mission.explore import _reachable_frontiers
+    from estimation.app.mission.explore import _reachable_targets
 
     reference, mapper = np.array([5.0, 2.0, math.pi]), np.array([2.5, 2.0, 0.0])
-    found = _reachable_frontiers(view, [reference[:2], mapper[:2]])
+    found = _reachable_targets(view, [reference[:2], mapper[:2]], [])
     frontier = min(found, key=lambda item: item[1])[0]
     assert frontier.centroid_xy[0] > 6.0  # the door to room B
     plain = Explorer(CONFIG, (1.5, 3.5)).heading(view, reference, mapper, [reference], frontier)
@@ -504,3 +504,45 @@ def test_a_low_box_beside_a_robot_standing_now_does_not_hide_a_beacon_above_it()
     beside = MapView(grid, CONFIG, np.array([observer[:2]]), robots_xy=np.array([observer[:2]]))
     assert beside.floor.obstacle.any()
     assert beside.geometry.sees_beacon(observer, target)
+
+
+def seen_whole() -> OccupancyGrid:
+    """Rooms A (x 0-4 m) and B (x 4.1-8 m), 4 m deep under a 2.5 m ceiling, joined by a 1 m
+    door (y 1.5-2.5 m) and seen whole: no frontier is left."""
+    i, j, k = np.meshgrid(np.arange(-1, 81), np.arange(-1, 41), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    y = (cells[:, 1] + 0.5) * RES
+    wall = (cells[:, 0] == -1) | (cells[:, 0] == 80) | (cells[:, 1] == -1) | (cells[:, 1] == 40)
+    wall |= (cells[:, 0] == 40) & ~((y > 1.5) & (y < 2.5))
+    params = GridParams(resolution_m=RES)
+    return OccupancyGrid.from_cells(params, cells, np.where(wall, params.logodds_max,
+                                                            params.logodds_min))  # fmt: skip
+
+
+def test_once_no_frontier_is_left_the_pair_goes_into_the_rooms_nobody_stood_in() -> None:
+    grid = seen_whole()
+    robots = [np.array([2.5, 2.0]), np.array([1.0, 1.0])]
+    view = MapView(grid, CONFIG, np.array(robots))
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    room = explorer.frontier(view, robots)
+    assert room is not None
+    assert 5.6 < room.centroid_xy[0] < 6.5  # room B, seen whole through its door
+    distance = float(np.min(view.distances_from(robots)[room.cells[:, 0], room.cells[:, 1]]))
+    assert 1.5 < distance < 4.5
+    # The pair heads there as to a frontier; a robot standing in room B has entered it.
+    reference, mapper = np.array([2.5, 2.0, 0.0]), np.array([1.0, 1.0, 0.0])
+    goal = explorer.scan_pose(view, reference, mapper, [reference], room, [])
+    assert goal is not None
+    assert goal.pose[0] > 4.5  # through the door
+    inside = MapView(grid, CONFIG, np.array([*robots, [5.5, 2.0]]))
+    assert explorer.frontier(inside, robots) is None
+    # A frontier not given up comes first; given up, the room is offered again.
+    door = Frontier(room.cells, room.centroid_xy + np.array([0.0, 5.0]), room.size)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(explore, "frontiers", lambda *args, **kwargs: [door])
+        assert explorer.frontier(view, robots) is door
+        explorer.given_up.append(door.centroid_xy.copy())
+        offered = explorer.frontier(view, robots)
+        assert offered is not None
+        assert not isinstance(offered, Frontier)
+        assert explorer.abandon(view, robots)  # the room was never tried
