@@ -9,9 +9,11 @@ evaluates, so the values are bit-identical.
 
 from __future__ import annotations
 
-from scipy.special import gammaincinv
+import math
 
-__all__ = ["chi2_quantile"]
+from scipy.special import gammainc, gammaincinv
+
+__all__ = ["chi2_cdf", "chi2_quantile"]
 
 
 def chi2_quantile(probability: float, dof: int) -> float:
@@ -21,3 +23,9 @@ def chi2_quantile(probability: float, dof: int) -> float:
     outside [0, 1].
     """
     return float(2.0 * gammaincinv(0.5 * dof, probability))
+
+
+def chi2_cdf(value: float, dof: int) -> float:
+    """The probability that a chi-square variable with ``dof`` degrees of freedom stays below
+    ``value`` (``scipy.stats.chi2.cdf``): 0 at or below 0, 1 at infinity, NaN for NaN."""
+    return float(gammainc(0.5 * dof, max(value, 0.0) * 0.5)) if value == value else math.nan

@@ -9,7 +9,12 @@ the one whose removal brings the stations back into their regions pulled them, a
 with their searches (or nothing more is flagged).
 
 A search result whose own factor was rejected as an outlier (by GNC, or disabled) is reported
-but flags nothing: then it is the search, not the graph, that is suspect.
+but flags nothing: then it is the search, not the graph, that is suspect. A search whose factor
+carries a registration's refinement instead of the PDF's best pose (docs/design.md §7) is
+checked against that factor's own Gaussian: the station lies in its region when the factor's
+squared Mahalanobis norm stays below the χ² quantile of ``mass`` (three degrees of freedom).
+Its PDF, on the search's lattice, is sharper than the registration and centred a few
+centimetres away; checked against it, a station the registration placed well lay outside.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from estimation.chi2 import chi2_quantile
+from estimation.chi2 import chi2_cdf, chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
@@ -73,14 +78,25 @@ class Validation:
 
 def _search_factor(
     factors: Sequence[FactorSpec], active: np.ndarray, key: int, reference: int | None, pdf: PosePdf
-) -> bool:
-    """Whether an active global factor carries this search result (same keys, same mean)."""
+) -> FactorSpec | None:
+    """The active global factor that carries this search result: same keys, and the PDF's best
+    pose as its mean or, refined by a registration, the nearest such factor to it (within the
+    PDF's window). None when no active factor carries it."""
     keys = (key,) if reference is None else (reference, key)
     best = pdf.best_pose()
-    return any(
-        active[i] and f.kind == "global" and f.keys == keys and np.allclose(f.measurement, best)
-        for i, f in enumerate(factors)
-    )
+    found: tuple[float, FactorSpec] | None = None
+    for i, f in enumerate(factors):
+        if not (active[i] and f.kind == "global" and f.keys == keys):
+            continue
+        if np.allclose(f.measurement, best):
+            return f
+        gap = se2.between(best, np.asarray(f.measurement, dtype=float))
+        if pdf.nearest_index(np.asarray(f.measurement, dtype=float)) is None:
+            continue
+        distance = float(np.hypot(gap[0], gap[1]))
+        if found is None or distance < found[0]:
+            found = (distance, f)
+    return None if found is None else found[1]
 
 
 def _solve_without(
@@ -105,17 +121,29 @@ def _check(
     reference: int | None,
     pdf: PosePdf,
     mass: float,
-    kept: bool,
+    factor: FactorSpec | None,
 ) -> StationCheck:
+    """The check of one search result; against its factor's Gaussian when the factor carries a
+    registration's refinement (its mean is not the PDF's best pose)."""
     base = np.zeros(3) if reference is None else estimate[reference]
     pose = se2.between(base, estimate[key])
+    if factor is not None and not np.allclose(factor.measurement, pdf.best_pose()):
+        m2 = factor.mahalanobis2(estimate)
+        return StationCheck(
+            key=key,
+            reference=reference,
+            pose=pose,
+            mass_above=chi2_cdf(m2, 3),
+            inside=m2 <= chi2_quantile(mass, 3),
+            search_factor_kept=True,
+        )
     return StationCheck(
         key=key,
         reference=reference,
         pose=pose,
         mass_above=pdf.mass_above(pose),
         inside=pdf.contains(pose, mass),
-        search_factor_kept=kept,
+        search_factor_kept=factor is not None,
     )
 
 
@@ -140,16 +168,16 @@ def validate_stations(
     active = np.ones(len(factors), dtype=bool) if active is None else np.asarray(active, bool)
     if len(active) != len(factors):
         raise EstimationError(f"validator: {len(active)} flags for {len(factors)} factors")
-    results: list[tuple[int, int | None, PosePdf]] = []
+    results: list[tuple[int, int | None, PosePdf, FactorSpec | None]] = []
     checks: list[StationCheck] = []
     for key, station_results in searches.items():
         for pdf, reference in station_results:
             for k in (key, reference):
                 if k is not None and k not in estimate:
                     raise EstimationError(f"validator: {key_label(k)} is not in the estimate")
-            kept = _search_factor(factors, active, key, reference, pdf)
-            checks.append(_check(estimate, key, reference, pdf, mass, kept))
-            results.append((key, reference, pdf))
+            factor = _search_factor(factors, active, key, reference, pdf)
+            checks.append(_check(estimate, key, reference, pdf, mass, factor))
+            results.append((key, reference, pdf, factor))
     failing = [i for i, c in enumerate(checks) if not c.inside and c.search_factor_kept]
     if not failing:
         return Validation(checks=tuple(checks), flagged=())
@@ -166,8 +194,8 @@ def validate_stations(
         if solution is None:
             continue
         after = [
-            _check(solution, key, ref, pdf, mass, True)
-            for key, ref, pdf in (results[j] for j in failing)
+            _check(solution, key, ref, pdf, mass, factor)
+            for key, ref, pdf, factor in (results[j] for j in failing)
         ]
         score = (sum(c.inside for c in after), -sum(c.mass_above for c in after), i)
         if score[0] > 0 and (best is None or score[:2] > best[:2]):

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from scipy.stats import chi2
 
-from estimation.chi2 import chi2_quantile
+from estimation.chi2 import chi2_cdf, chi2_quantile
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -42,3 +42,16 @@ def test_batch_modules_do_not_import_scipy_stats() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True
     )
     assert out.stdout.split() == ["False", "True"]
+
+
+@pytest.mark.parametrize("dof", [1, 3, 6])
+@pytest.mark.parametrize("value", [0.0, 0.1, 1.0, 7.8, 11.3, 36.0])
+def test_cdf_equals_scipy_stats(value: float, dof: int) -> None:
+    assert chi2_cdf(value, dof) == pytest.approx(float(chi2.cdf(value, dof)), rel=1e-14, abs=1e-300)
+
+
+def test_cdf_at_the_ends_and_of_nan() -> None:
+    assert chi2_cdf(-1.0, 3) == 0.0
+    assert chi2_cdf(math.inf, 3) == 1.0
+    assert math.isnan(chi2_cdf(math.nan, 3))
+    assert chi2_cdf(chi2_quantile(0.99, 3), 3) == pytest.approx(0.99, abs=1e-12)

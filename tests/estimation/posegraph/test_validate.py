@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from estimation.chi2 import chi2_cdf
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import GraphBuilder
@@ -100,3 +101,33 @@ def test_validator_errors(mission) -> None:  # type: ignore[no-untyped-def]
     del estimate[pose_key("a", 3)]
     with pytest.raises(EstimationError, match="validator: a3 is not in the estimate"):
         validate_stations(estimate, builder.factors, builder.pdfs)
+
+
+def test_a_search_refined_by_registration_is_checked_against_its_own_factor(mission) -> None:  # type: ignore[no-untyped-def]
+    """A registered search's factor carries the registration's pose and covariance, not the
+    PDF's: the station is checked against that Gaussian. Here the PDF on its lattice peaks 8 cm
+    (4σ) from the truth, the registration found the truth."""
+    key = pose_key("a", 9)
+    truth = mission.truth[key]
+    events = [e for e in mission.events
+              if not (isinstance(e, Localize) and (e.robot, e.index) == ("a", 9))]  # fmt: skip
+    pdf = search_pdf(truth + np.array([0.08, 0.0, 0.0]), 0.02, SIGMA_RAD, half_width=10)
+    tight = np.diag([0.005**2, 0.005**2, math.radians(0.1) ** 2])
+    builder = GraphBuilder()
+    builder.add_all(events)
+    builder.add(Localize("a", 9, pdf, pose=truth.copy(), covariance=tight))
+    result = optimize_batch(builder.factors, builder.initial_values(), "none")
+    validation = validate_stations(result.estimate, builder.factors, builder.pdfs)
+    (check,) = [c for c in validation.checks if c.key == key]
+    assert check.search_factor_kept
+    assert check.inside
+    assert not pdf.contains(check.pose, 0.99)  # against its PDF it would lie outside
+    assert validation.ok
+    # 3 cm off the registration (6σ): outside, with the Gaussian's mass above it.
+    moved = dict(result.estimate)
+    moved[key] = moved[key] + np.array([0.0, 0.03, 0.0])
+    (check,) = [c for c in validate_stations(moved, builder.factors, builder.pdfs).checks
+                if c.key == key]  # fmt: skip
+    assert not check.inside
+    assert check.search_factor_kept
+    assert check.mass_above == pytest.approx(chi2_cdf(36.0, 3), abs=0.02)
