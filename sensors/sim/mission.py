@@ -49,6 +49,7 @@ from sensors.yamlio import read_yaml_mapping, validate_mapping
 __all__ = [
     "CHUNK_SCANS",
     "ChangesSpec",
+    "CollisionError",
     "MissionError",
     "MissionSpec",
     "Odometer",
@@ -70,6 +71,15 @@ Pose3 = Annotated[list[float], Field(min_length=3, max_length=3)]  # x_m, y_m, y
 
 class MissionError(SensorError, ValueError):
     """A mission is invalid or cannot be flown; the message names the step, robot or station."""
+
+
+class CollisionError(MissionError):
+    """A robot's path would collide: ``at_xy`` is where its centre would first come too close
+    to what is really there (world frame)."""
+
+    def __init__(self, message: str, at_xy: np.ndarray) -> None:
+        super().__init__(message)
+        self.at_xy = np.asarray(at_xy, dtype=float)[:2].copy()
 
 
 class _Model(BaseModel):
@@ -308,9 +318,11 @@ class TimelineBuilder:
             if local is None or any(
                 _distance_to_segment(q, a, b) > LOCAL_DEVIATION_M for q in local
             ):
-                raise MissionError(
+                at = self.space.first_blocked(a, b)
+                raise CollisionError(
                     f"{where}: robot {robot!r} would collide on the leg ({a[0]:.2f}, "
-                    f"{a[1]:.2f}) → ({b[0]:.2f}, {b[1]:.2f}) of its path"
+                    f"{a[1]:.2f}) → ({b[0]:.2f}, {b[1]:.2f}) of its path",
+                    b if at is None else at,
                 )
             legs += local[1:]
         return legs

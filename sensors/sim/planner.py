@@ -54,6 +54,17 @@ class FreeSpace:
         steps = max(1, math.ceil(float(np.linalg.norm(b - a)) / (self.resolution_m / 4)))
         return all(self.is_free(a + s * (b - a)) for s in np.linspace(0.0, 1.0, steps + 1))
 
+    def first_blocked(self, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
+        """The first point of the straight leg a → b (sampled at a quarter cell) that is not
+        in free space, or None when the whole leg is."""
+        a, b = np.asarray(a, float)[:2], np.asarray(b, float)[:2]
+        steps = max(1, math.ceil(float(np.linalg.norm(b - a)) / (self.resolution_m / 4)))
+        for s in np.linspace(0.0, 1.0, steps + 1):
+            point = a + s * (b - a)
+            if not self.is_free(point):
+                return point
+        return None
+
     def component_of(self, xy: np.ndarray | tuple[float, float]) -> np.ndarray:
         """The free cells connected to ``xy`` (8-connected)."""
         labels, _ = ndimage.label(self.free, structure=np.ones((3, 3)))

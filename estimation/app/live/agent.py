@@ -257,7 +257,12 @@ class SimulatedRobot:
         fleet = self.fleet
         if op == "move":
             status = fleet.move(_goal(args))
-            return {"ok": status.ok, "index": status.index, "reason": status.reason}
+            return {
+                "ok": status.ok,
+                "index": status.index,
+                "reason": status.reason,
+                "blocked": None if status.blocked_xy is None else list(status.blocked_xy),
+            }
         if op == "dwell":
             fleet.dwell(**args.get("fields", {}))
             return {"ok": True}

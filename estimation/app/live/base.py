@@ -478,7 +478,8 @@ class NetworkFleet(Fleet):
             self.t = float(reply["t_s"])
         if not reply["ok"]:
             self.refused.append(str(reply.get("reason")))
-            return Status(goal.robot, False, index, reply.get("reason"))
+            return Status(goal.robot, False, index, reply.get("reason"),
+                          _blocked(reply.get("blocked")))  # fmt: skip
         return Status(goal.robot, True, index)
 
     def dwell(self, **fields: Any) -> None:
@@ -577,3 +578,15 @@ class NetworkFleet(Fleet):
 
 def _payload(data: bytes) -> bytes:
     return decode_chunk(data).payload
+
+
+def _blocked(value: Any) -> tuple[float, float] | None:
+    """A reply's ``blocked`` point: two finite numbers, else None (a robot that does not say,
+    or says something else)."""
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        return None
+    try:
+        x, y = float(value[0]), float(value[1])
+    except (TypeError, ValueError):
+        return None
+    return (x, y) if np.isfinite(x) and np.isfinite(y) else None

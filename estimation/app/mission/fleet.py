@@ -26,6 +26,7 @@ from sensors.geometry import se2
 from sensors.sim.mission import (
     CHUNK_SCANS,
     ChangesSpec,
+    CollisionError,
     MissionError,
     Odometer,
     SensorRecorder,
@@ -55,12 +56,14 @@ class Goal:
 
 @dataclass(frozen=True)
 class Status:
-    """How a goal ended: ``ok`` and the robot's new pose index, or why it was refused."""
+    """How a goal ended: ``ok`` and the robot's new pose index, or why it was refused;
+    ``blocked_xy``, where the robot found its way blocked (map frame), if it knows."""
 
     robot: str
     ok: bool
     index: int
     reason: str | None = None
+    blocked_xy: tuple[float, float] | None = None
 
 
 @dataclass
@@ -161,12 +164,11 @@ class SimulatedFleet(Fleet):
     def move(self, goal: Goal) -> Status:
         target = np.array(goal.pose, dtype=float)
         path = [np.array(p, dtype=float) for p in goal.path]
+        true_now = self.timeline.tracks[goal.robot].pose
+        believed = true_now if goal.believed is None else np.array(goal.believed, dtype=float)
         if goal.believed is not None:
             # The robot drives by its belief: the goal and the path, relative to where it
             # believes it stands, start from where it truly stands.
-            true_now = self.timeline.tracks[goal.robot].pose
-            believed = np.array(goal.believed, dtype=float)
-
             def truly(p: np.ndarray) -> np.ndarray:
                 return se2.compose(true_now, se2.between(believed, p))
 
@@ -176,7 +178,12 @@ class SimulatedFleet(Fleet):
             self.builder.move(goal.robot, target, f"goal of robot {goal.robot}", path or None)
         except MissionError as exc:
             self.refused.append(str(exc))
-            return Status(goal.robot, False, self.builder.index[goal.robot], str(exc))
+            blocked = None
+            if isinstance(exc, CollisionError):
+                # Where the body met the obstacle, as the robot believes it: the map frame.
+                at = se2.compose(believed, se2.between(true_now, np.r_[exc.at_xy, 0.0]))
+                blocked = (float(at[0]), float(at[1]))
+            return Status(goal.robot, False, self.builder.index[goal.robot], str(exc), blocked)
         return Status(goal.robot, True, self.builder.index[goal.robot])
 
     def dwell(self, **fields: Any) -> None:

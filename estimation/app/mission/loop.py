@@ -40,10 +40,11 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import EventMaker
 from estimation.app.mission.estimated_map import EstimatedMap
-from estimation.app.mission.explore import Explorer, MapView
+from estimation.app.mission.explore import Explorer
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.mission.turns import RETRIES, fly_turn
+from estimation.app.mission.view import MapView
 from estimation.app.pipeline import finish_isam, isam_options, prepare
 from estimation.app.results import BatchOutput
 from estimation.app.rig import scan_limits, station_params
@@ -144,6 +145,8 @@ class MissionLoop:
         self.localizations: list[dict[str, Any]] = []
         self.retries: list[str] = []
         self.refused: list[str] = []
+        #: Where refused goals found their way blocked (map frame): obstacles for the planner.
+        self.blocked: list[tuple[float, float]] = []
         self.unobserved: list[str] = []
         self.pivots = 0  # pivot poses driven to, to tie the reference's turns
         self.untied: dict[str, str] = {}  # stations whose turn no mutual observation ties: why
@@ -285,6 +288,8 @@ class MissionLoop:
         ))  # fmt: skip
         if not status.ok:
             self.refused.append(status.reason or f"robot {robot}: goal refused")
+            if status.blocked_xy is not None and all(map(math.isfinite, status.blocked_xy)):
+                self.blocked.append(status.blocked_xy)
         # A real robot that moved before its goal failed stands at a new pose all the same.
         self.index[robot] = status.index
         return status.ok
@@ -490,7 +495,7 @@ class MissionLoop:
     def view(self) -> MapView | None:
         """The planner's view of the map now; built again only when a dwell, an event or a
         move changed what it is made of (a station asks for it several times)."""
-        state = (self._dwells, self.smoother.events, tuple(self.index.values()))
+        state = (self._dwells, self.smoother.events, tuple(self.index.values()), len(self.blocked))
         if self._cached is not None and self._cached[0] == state:
             return self._cached[1]
         stood = [self.estimate[pose_key(r, i)][:2] for r in self.robots
@@ -498,8 +503,9 @@ class MissionLoop:
         now = [self.pose(r)[:2] for r in self.robots]
         try:
             view: MapView | None = MapView(
-                self.map.grid, self.config, np.array(stood + now), robots_xy=np.array(now)
-            )
+                self.map.grid, self.config, np.array(stood + now), robots_xy=np.array(now),
+                blocked_xy=np.array(self.blocked).reshape(-1, 2),
+            )  # fmt: skip
         except MapError:
             view = None
         self._cached = (state, view)
@@ -562,6 +568,7 @@ class MissionLoop:
             "pivots": self.pivots,
             "untied_turns": self.untied,
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
+            "blocked_at": [[round(x, 3), round(y, 3)] for x, y in self.blocked],
             "given_up_frontiers": self.given_up,
             "retried_frontiers": self.retried_frontiers,
             "stalls_resumed": self.abandoned,

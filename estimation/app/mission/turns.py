@@ -8,8 +8,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from estimation.app.mission.explore import Explorer, MapView, ScanGoal, TurnPlan
+from estimation.app.mission.explore import Explorer, ScanGoal, TurnPlan
 from estimation.app.mission.fleet import Fleet
+from estimation.app.mission.view import MapView
 from estimation.app.sim.planning import as_spec
 from sensors.sim.mission import StepSpec
 

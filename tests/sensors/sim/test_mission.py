@@ -15,6 +15,7 @@ from sensors.geometry import se2
 from sensors.lms200.capture import CaptureReader, CaptureWriter
 from sensors.scan3d.mirror import MirrorGeometry
 from sensors.sim.mission import (
+    CollisionError,
     MissionError,
     Odometer,
     OdometryNoise,
@@ -163,6 +164,14 @@ def test_a_path_through_an_obstacle_is_refused_and_nothing_moves(space: FreeSpac
     across = [np.array([1.0, 3.0]), np.array([3.0, 3.1]), np.array([3.0, 0.9])]
     with pytest.raises(MissionError, match=r"robot 'b' .* leg \(3\.00, 3\.10\) → \(3\.00, 0\.90\)"):
         builder.move("b", np.array([3.0, 0.9, 0.0]), "goal", across)
+    # A collision says where the robot's centre first came too close: just before the pillar
+    # (x 2.7-3.3) by about the robot's radius (0.3 m, on a 0.1 m grid), on the leg.
+    with pytest.raises(CollisionError) as caught:
+        builder.move("a", np.array([5.0, 2.0, 0.0]), "plan[3]", through)
+    assert caught.value.at_xy[1] == pytest.approx(2.0)
+    assert 2.3 < caught.value.at_xy[0] < 2.6
+    assert not space.is_free(caught.value.at_xy)
+    assert space.first_blocked(np.array([1.0, 1.0]), np.array([1.0, 2.0])) is None
     with pytest.raises(MissionError, match=r"^goal: robot 'a' cannot stand at \(3, 2\): inside"):
         builder.move("a", np.array([3.0, 2.0, 0.0]), "goal")
     with pytest.raises(MissionError, match=r"cannot stand at \(7, 1\)"):

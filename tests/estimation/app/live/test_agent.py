@@ -8,6 +8,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from estimation.app.live.agent import AgentFaults, RobotAgent, RobotStore, SimulatedRobot
@@ -286,3 +287,22 @@ def test_a_simulated_robot_refuses_a_goal_it_cannot_drive_to(tmp_path: Path) -> 
     with pytest.raises(WireError, match="finite x, y, yaw"):
         robot._command(bad)
     assert len(robot.store.log) == 1  # type: ignore[union-attr]  # nothing executed
+
+
+def test_a_refused_move_replies_where_the_way_was_blocked() -> None:
+    robot = simulate()
+    robot.apply(
+        "dwell", {"fields": {"phase": "start", "reference": "a", "mapper": "b", "step": -1}}
+    )
+    # From b's start (3.5, 5.75) straight through pillar_1 (4.0, 4.5).
+    reply = robot.apply("move", {"robot": "b", "pose": [4.5, 3.25, 0.0],
+                                 "path": [[3.5, 5.75], [4.5, 3.25]], "believed": None})  # fmt: skip
+    assert not reply["ok"]
+    assert "would collide" in reply["reason"]
+    assert len(reply["blocked"]) == 2
+    assert not robot.fleet.builder.space.is_free(np.array(reply["blocked"]))
+    assert 0.35 < math.dist(reply["blocked"], (4.0, 4.5)) < 0.6
+    reply = robot.apply("move", {"robot": "b", "pose": [3.0, 5.0, 0.0], "path": [],
+                                 "believed": None})  # fmt: skip
+    assert reply["ok"]
+    assert reply["blocked"] is None

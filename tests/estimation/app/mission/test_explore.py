@@ -3,6 +3,7 @@ to it, path distances, and the explorer's bookkeeping (poses taken, frontiers gi
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -10,7 +11,8 @@ import pytest
 
 from estimation.app.config import Config
 from estimation.app.mission import explore
-from estimation.app.mission.explore import Explorer, MapView
+from estimation.app.mission.explore import Explorer
+from estimation.app.mission.view import MapView
 from mapping.grid import GridParams, OccupancyGrid
 from mapping.traversability import Frontier
 
@@ -546,3 +548,22 @@ def test_once_no_frontier_is_left_the_pair_goes_into_the_rooms_nobody_stood_in()
         assert offered is not None
         assert not isinstance(offered, Frontier)
         assert explorer.abandon(view, robots)  # the room was never tried
+
+
+def test_where_a_robot_found_its_way_blocked_no_path_is_planned_again() -> None:
+    grid = seen_whole()
+    robots = [np.array([1.0, 1.0])]
+    open_view = MapView(grid, CONFIG, np.array(robots))
+    start, goal = np.array([1.0, 1.0]), np.array([3.0, 3.0])
+    assert open_view.space.segment_free(start, goal)
+    blocked = MapView(grid, CONFIG, np.array(robots), blocked_xy=np.array([[2.0, 2.0]]))
+    assert not blocked.space.is_free((2.0, 2.0))
+    assert not blocked.space.segment_free(start, goal)
+    path = blocked.space.path(start, goal)
+    assert path is not None  # around it
+    samples = np.concatenate([np.linspace(a, b, 20) for a, b in itertools.pairwise(path)])
+    assert np.hypot(*(samples - (2.0, 2.0)).T).min() >= CONFIG.robot.footprint_radius_m + 0.05
+    # Points off the map or not finite change nothing.
+    same = MapView(grid, CONFIG, np.array(robots),
+                   blocked_xy=np.array([[-40.0, 2.0], [math.nan, 1.0]]))  # fmt: skip
+    np.testing.assert_array_equal(same.space.free, open_view.space.free)

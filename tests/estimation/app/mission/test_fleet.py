@@ -176,3 +176,33 @@ def test_receive_returns_what_was_recorded_since_the_last_call(fleet: SimulatedF
         assert stream.implausible == {}
         steps = np.diff(stream.times_s) / interval
         np.testing.assert_allclose(steps, 1.0, atol=1e-6)  # no telegram lost or repeated
+
+
+def test_a_refused_goal_says_where_the_way_was_blocked_in_the_robots_belief(
+    fleet: SimulatedFleet, body_space: FreeSpace
+) -> None:
+    # Straight through pillar_1 (4.0, 4.5): blocked before it, on the leg.
+    status = fleet.move(Goal("a", (6.0, 5.5, 0.0), path=((2.0, 3.5), (6.0, 5.5))))
+    assert not status.ok
+    assert status.blocked_xy is not None
+    blocked = np.array(status.blocked_xy)
+    assert not body_space.is_free(blocked)
+    assert 0.35 < math.dist(blocked, (4.0, 4.5)) < 0.6  # its radius and the body's
+    # Driving by a belief 0.25 m and 8° off, the point is where the belief places it.
+    true_start = np.array(STARTS["a"])
+    believed = true_start + np.array([0.25, -0.15, math.radians(8.0)])
+    path = ((float(believed[0]), float(believed[1])), (6.0, 5.5))
+    status = fleet.move(Goal("a", (6.0, 5.5, 0.0), path=path, believed=tuple(believed.tolist())))
+    assert not status.ok
+    assert status.blocked_xy is not None
+    truly = se2.compose(true_start, se2.between(believed, np.r_[status.blocked_xy, 0.0]))
+    assert not body_space.is_free(truly[:2])
+    # Mapped back into the truth, it lies on the leg the robot truly drove.
+    end = se2.compose(true_start, se2.between(believed, np.array([6.0, 5.5, 0.0])))[:2]
+    along = np.clip((truly[:2] - true_start[:2]) @ (end - true_start[:2])
+                    / np.sum((end - true_start[:2]) ** 2), 0.0, 1.0)  # fmt: skip
+    nearest = true_start[:2] + along * (end - true_start[:2])
+    assert math.dist(truly[:2], nearest) < 1e-9
+    assert math.dist(status.blocked_xy, truly[:2]) > 0.1  # the belief's offset, not the truth
+    # A goal that cannot be stood at names no point.
+    assert fleet.move(Goal("a", (4.0, 4.5, 0.0))).blocked_xy is None

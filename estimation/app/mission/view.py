@@ -1,0 +1,233 @@
+"""The planner's view of the estimated map at one moment (docs/design.md §13).
+
+A :class:`MapView` of the occupancy grid as estimated (never the true world) holds its floor
+columns at the robot's body height, the drivable space (known free floor, clear of obstacles and
+of what nobody has seen), the rooms nobody stood in, and a 2D coverage model: what a scan would
+add is the unknown floor inside the scanner's wedge up to its range, occluded by obstacle
+columns. Beacon line of sight is tested on the 3D grid (unknown cells block it: a beacon behind
+what nobody has seen may be hidden).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from estimation.app.config import Config
+from estimation.app.sim.planning import BeaconGeometry, CoverageModel, grid_graph
+from mapping.errors import MapError
+from mapping.grid import OccupancyGrid
+from mapping.traversability import (
+    FloorMap,
+    Room,
+    drivable_space,
+    floor_map,
+    large_unknown,
+    line_of_sight,
+    unvisited_rooms,
+)
+from sensors.sim.planner import FreeSpace
+
+__all__ = ["MIN_UNKNOWN_M2", "MapView"]
+
+#: Unknown floor that counts as unexplored: regions of at least this much (m²).
+MIN_UNKNOWN_M2 = 4.0
+#: Rooms (``mapping.traversability.unvisited_rooms``): parted by passages up to this much
+#: clearance (m) above the drivable space's least, persisting this much above it, with at least
+#: this much drivable floor (m²).
+_ROOM_LEVEL_M, _ROOM_PERSISTENCE_M, _ROOM_M2 = 0.9, 0.2, 2.0
+#: Where a robot found its way blocked, an obstacle of this radius (m): what blocked it lies
+#: within the robot's radius of that point, so the planner keeps its radius and margin off it.
+_BLOCKED_M = 0.1
+#: Unknown floor added around the known map, m.
+_BORDER_M = 1.0
+
+
+class MapView:
+    """The estimated map as the planner sees it at one moment.
+
+    ``stood_xy`` (N, 2) are the places robots stood (their estimated stop poses): the floor
+    under a robot is free, the scanners cannot see it, and the other robots' scans put the
+    robot's own body there; within the footprint (plus a cell) nothing counts as an obstacle,
+    and within the footprint plus the margin nothing counts as unknown. ``robots_xy`` (M, 2) are
+    where the robots stand now: beacon lines of sight ignore what the scans saw around them
+    (their bodies and beacons). Only there: ignoring what lay around every place a robot ever
+    stood blanked out furniture and door jambs all over a long mission's map, and the planner
+    sent robots to poses from which a wall hid the beacons (building 3 of evaluate-missions:
+    108 of 109 such misses were clear only because of it). ``blocked_xy`` (K, 2) are where
+    refused goals found the robot's way blocked: each is an obstacle of ``_BLOCKED_M`` radius,
+    so that no path is planned through it again (generated building 4 at 150 stations: 210 of
+    282 refused goals on the same leg through a wall the map showed open)."""
+
+    def __init__(self, grid: OccupancyGrid, config: Config, stood_xy: np.ndarray | None = None,
+                 margin_m: float = 0.05, robots_xy: np.ndarray | None = None,
+                 blocked_xy: np.ndarray | None = None) -> None:  # fmt: skip
+        robot = config.robot
+        self.grid = grid
+        self.radius_m = robot.footprint_radius_m
+        # A border of unknown floor around what is known: the room beyond a door nobody has
+        # looked through is unknown space, not the end of the map.
+        low, high = grid.bounds_cells()
+        res = grid.resolution_m
+        floor = floor_map(
+            grid, body_z_m=(0.1, robot.body_height_m),
+            lower_xy=grid.origin_m[:2] + low[:2] * res - _BORDER_M,
+            upper_xy=grid.origin_m[:2] + (high[:2] + 1) * res + _BORDER_M,
+        )  # fmt: skip
+        self.stood = np.zeros((0, 2)) if stood_xy is None else np.asarray(stood_xy).reshape(-1, 2)
+        if len(self.stood):
+            floor = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
+        if blocked_xy is not None and len(blocked_xy):
+            floor = _block(floor, np.asarray(blocked_xy, dtype=float).reshape(-1, 2))
+        self.floor: FloorMap = floor
+        # A robot's beacon sits ahead of its centre: ignore scans within reach of both.
+        self._ignore_m = config.robot.scanner_x_m + config.beacon.offset_m + 0.25
+        self.robots = np.zeros((0, 2)) if robots_xy is None else np.asarray(robots_xy)
+        self.robots = self.robots.reshape(-1, 2)
+        self.space: FreeSpace = drivable_space(
+            self.floor, robot_radius_m=self.radius_m, margin_m=margin_m
+        )
+        # What a scan adds: unknown floor of the regions a frontier leads to (the shadows of
+        # furniture, never resolved, would keep the pair busy where it already is).
+        self.unexplored = large_unknown(self.floor, MIN_UNKNOWN_M2)
+        self.coverage = CoverageModel(
+            self.space, ~self.floor.obstacle, ~self.unexplored, self.floor.obstacle
+        )
+        self.geometry = BeaconGeometry(config, line_clear=self._clear)
+        self._graph: tuple[object, np.ndarray] | None = None
+        self._rooms: list[Room] | None = None
+
+    def rooms(self) -> list[Room]:
+        """The rooms of the drivable space that no robot stood in (computed once)."""
+        if self._rooms is None:
+            self._rooms = unvisited_rooms(
+                self.space, self.stood, max_level_m=_ROOM_LEVEL_M,
+                persistence_m=_ROOM_PERSISTENCE_M, min_area_m2=_ROOM_M2,
+            )  # fmt: skip
+        return self._rooms
+
+    def _clear(self, start: np.ndarray, end: np.ndarray) -> bool:
+        try:
+            seen = line_of_sight(
+                self.grid, start, end, start_clearance_m=0.3, end_clearance_m=0.3,
+                unknown_blocks=True, ignore_xy=self.robots, ignore_radius_m=self._ignore_m,
+            )  # fmt: skip
+        except MapError:
+            return False
+        return seen and not self._walled(start, end)
+
+    def _walled(self, start: np.ndarray, end: np.ndarray) -> bool:
+        """Whether the segment, where it passes within ``_ignore_m`` of a robot standing now,
+        crosses an occupied cell over an obstacle of the floor map (a wall, furniture; not a
+        robot's body, cleared where robots stood). There the 3D cells are not tested (the
+        robot's body and its beacon at every heading it turned to, which stand on free floor),
+        and a wall beside the robot would not be either: a robot 0.42 m from a corridor wall
+        saw through it into the hall beyond, and its partner was sent there (generated
+        building 4: four scan poses unobserved, then lost)."""
+        if not len(self.robots):
+            return False
+        floor, grid = self.floor, self.grid
+        a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+        steps = max(2, math.ceil(2.0 * float(np.linalg.norm(b - a)) / grid.resolution_m) + 1)
+        points = a + np.linspace(0.0, 1.0, steps)[:, None] * (b - a)
+        gap = points[:, None, :2] - self.robots[None, :, :]
+        points = points[(np.hypot(gap[..., 0], gap[..., 1]) <= self._ignore_m).any(axis=1)]
+        res = floor.resolution_m
+        cols = np.floor((points[:, 0] - floor.lower_xy[0]) / res).astype(np.int64)
+        rows = np.floor((points[:, 1] - floor.lower_xy[1]) / res).astype(np.int64)
+        h, w = floor.shape
+        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+        under = np.zeros(len(points), dtype=bool)
+        under[inside] = floor.obstacle[rows[inside], cols[inside]]
+        if not under.any():
+            return False
+        cells = np.floor((points[under] - np.asarray(grid.origin_m)) / grid.resolution_m)
+        values = grid.logodds_at(cells.astype(np.int64))
+        return bool(np.any(values > grid.params.logodds_threshold))
+
+    def free_near(self, xy: np.ndarray, reach_m: float = 0.6) -> np.ndarray | None:
+        """``xy`` if the robot may stand there, else the nearest drivable cell centre within
+        ``reach_m`` (an estimate a few centimetres off can put a robot beside the space)."""
+        if self.space.is_free(xy):
+            return np.asarray(xy, dtype=float)[:2]
+        row, col = self.space.cell(xy)
+        res = self.space.resolution_m
+        k = math.ceil(reach_m / res)
+        h, w = self.space.free.shape
+        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
+        cells = np.argwhere(self.space.free[r0:r1, c0:c1]) + np.array([r0, c0])
+        if not len(cells):
+            return None
+        centres = self.space.lower_xy + (cells[:, ::-1] + 0.5) * res
+        d = np.hypot(*(centres - np.asarray(xy)[:2]).T)
+        best = int(np.argmin(d))
+        return centres[best] if d[best] <= reach_m else None
+
+    def distances_from(self, sources_xy: list[np.ndarray]) -> np.ndarray:
+        """Shortest-path distance (m) through the drivable space from the nearest of
+        ``sources_xy`` to every cell (inf where unreachable)."""
+        from scipy.sparse.csgraph import dijkstra
+
+        if self._graph is None:
+            self._graph = grid_graph(self.space.free, self.space.resolution_m)
+        graph, index = self._graph
+        out = np.full(self.space.free.shape, np.inf)
+        nodes = sorted({int(index[self.space.cell(p)]) for p in sources_xy
+                        if self.space.is_free(p)})  # fmt: skip
+        if not nodes:
+            return out
+        distance = dijkstra(graph, directed=False, indices=nodes, min_only=True)
+        cells = np.argwhere(index >= 0)
+        out[cells[:, 0], cells[:, 1]] = distance
+        return out
+
+    def at(self, field_: np.ndarray, xy: np.ndarray) -> float:
+        row, col = self.space.cell(xy)
+        h, w = field_.shape
+        return float(field_[row, col]) if 0 <= row < h and 0 <= col < w else math.inf
+
+
+def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
+                       margin_m: float) -> FloorMap:  # fmt: skip
+    """The floor map with no obstacle within the footprint (plus a cell) of each place a robot
+    stood, and nothing unknown within the footprint plus the margin (see :class:`MapView`)."""
+    res = floor.resolution_m
+    h, w = floor.shape
+    body = np.zeros((h, w), dtype=bool)
+    around = np.zeros((h, w), dtype=bool)
+    k = math.ceil((radius_m + margin_m) / res) + 2
+    for x, y in stood:
+        row = math.floor((y - floor.lower_xy[1]) / res)
+        col = math.floor((x - floor.lower_xy[0]) / res)
+        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        ys = floor.lower_xy[1] + (np.arange(r0, r1) + 0.5) * res
+        xs = floor.lower_xy[0] + (np.arange(c0, c1) + 0.5) * res
+        d = np.hypot(xs[None, :] - x, ys[:, None] - y)
+        body[r0:r1, c0:c1] |= d <= radius_m + res
+        around[r0:r1, c0:c1] |= d <= radius_m + margin_m + res
+    obstacle = floor.obstacle & ~body
+    free = floor.free | body | (around & ~obstacle)
+    return FloorMap(obstacle, free, floor.lower_xy, res)
+
+
+def _block(floor: FloorMap, points: np.ndarray) -> FloorMap:
+    """The floor map with an obstacle within ``_BLOCKED_M`` of each of ``points`` (finite
+    ones; those off the map change nothing)."""
+    res = floor.resolution_m
+    h, w = floor.shape
+    ys = floor.lower_xy[1] + (np.arange(h) + 0.5) * res
+    xs = floor.lower_xy[0] + (np.arange(w) + 0.5) * res
+    obstacle = floor.obstacle.copy()
+    k = math.ceil(_BLOCKED_M / res) + 1
+    for x, y in points[np.isfinite(points).all(axis=1)]:
+        row = math.floor((y - floor.lower_xy[1]) / res)
+        col = math.floor((x - floor.lower_xy[0]) / res)
+        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        d = np.hypot(xs[None, c0:c1] - x, ys[r0:r1, None] - y)
+        obstacle[r0:r1, c0:c1] |= d <= _BLOCKED_M + res / 2
+    return FloorMap(obstacle, floor.free & ~obstacle, floor.lower_xy, res)
