@@ -214,8 +214,9 @@ def unvisited_rooms(
     counts when its own clearance reaches ``persistence_m`` above the level and the drivable
     floor within ``level - c0`` of it (where the robot's disc fits, on the core's side of
     every wall) covers ``min_area_m2``. A point stood in it when it lies within ``level - c0 +
-    reach_m`` of the core. A room is reported at the lowest level at which it is unvisited; a
-    core inside a room already reported is the same room."""
+    reach_m`` of the core; a core that is the only one of a room's size inside a core of the
+    level below was stood in if that one was. A room is reported at the lowest level at which
+    it is unvisited; a core inside a room already reported is the same room."""
     free, clearance, res = space.free, space.clearance_m, space.resolution_m
     stood = np.asarray(stood_xy, dtype=float).reshape(-1, 2)
     if not (free.any() and math.isfinite(max_level_m) and math.isfinite(persistence_m)):
