@@ -19,6 +19,7 @@ centimetres away; checked against it, a station the registration placed well lay
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -90,10 +91,9 @@ def _search_factor(
             continue
         if np.allclose(f.measurement, best):
             return f
-        gap = se2.between(best, np.asarray(f.measurement, dtype=float))
         if pdf.nearest_index(np.asarray(f.measurement, dtype=float)) is None:
             continue
-        distance = float(np.hypot(gap[0], gap[1]))
+        distance = math.dist(f.measurement[:2], best[:2])
         if found is None or distance < found[0]:
             found = (distance, f)
     return None if found is None else found[1]

@@ -50,9 +50,7 @@ class FreeSpace:
 
     def segment_free(self, a: np.ndarray, b: np.ndarray) -> bool:
         """Whether the straight leg a → b stays in free space (sampled at a quarter cell)."""
-        a, b = np.asarray(a, float), np.asarray(b, float)
-        steps = max(1, math.ceil(float(np.linalg.norm(b - a)) / (self.resolution_m / 4)))
-        return all(self.is_free(a + s * (b - a)) for s in np.linspace(0.0, 1.0, steps + 1))
+        return self.first_blocked(a, b) is None
 
     def first_blocked(self, a: np.ndarray, b: np.ndarray) -> np.ndarray | None:
         """The first point of the straight leg a → b (sampled at a quarter cell) that is not

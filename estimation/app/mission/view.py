@@ -188,16 +188,14 @@ class MapView:
         return float(field_[row, col]) if 0 <= row < h and 0 <= col < w else math.inf
 
 
-def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
-                       margin_m: float) -> FloorMap:  # fmt: skip
-    """The floor map with no obstacle within the footprint (plus a cell) of each place a robot
-    stood, and nothing unknown within the footprint plus the margin (see :class:`MapView`)."""
+def _distance_to_points(floor: FloorMap, points: np.ndarray, reach_m: float) -> np.ndarray:
+    """Per cell of ``floor``, the distance (m) from its centre to the nearest of ``points``
+    (N, 2; non-finite ones skipped) when within ``reach_m``, else infinity."""
     res = floor.resolution_m
     h, w = floor.shape
-    body = np.zeros((h, w), dtype=bool)
-    around = np.zeros((h, w), dtype=bool)
-    k = math.ceil((radius_m + margin_m) / res) + 2
-    for x, y in stood:
+    out = np.full((h, w), np.inf)
+    k = math.ceil(reach_m / res) + 1
+    for x, y in points[np.isfinite(points).all(axis=1)]:
         row = math.floor((y - floor.lower_xy[1]) / res)
         col = math.floor((x - floor.lower_xy[0]) / res)
         r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
@@ -205,9 +203,19 @@ def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
             continue
         ys = floor.lower_xy[1] + (np.arange(r0, r1) + 0.5) * res
         xs = floor.lower_xy[0] + (np.arange(c0, c1) + 0.5) * res
-        d = np.hypot(xs[None, :] - x, ys[:, None] - y)
-        body[r0:r1, c0:c1] |= d <= radius_m + res
-        around[r0:r1, c0:c1] |= d <= radius_m + margin_m + res
+        window = out[r0:r1, c0:c1]
+        np.minimum(window, np.hypot(xs[None, :] - x, ys[:, None] - y), out=window)
+    return out
+
+
+def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
+                       margin_m: float) -> FloorMap:  # fmt: skip
+    """The floor map with no obstacle within the footprint (plus a cell) of each place a robot
+    stood, and nothing unknown within the footprint plus the margin (see :class:`MapView`)."""
+    res = floor.resolution_m
+    d = _distance_to_points(floor, stood, radius_m + margin_m + res)
+    body = d <= radius_m + res
+    around = d <= radius_m + margin_m + res
     obstacle = floor.obstacle & ~body
     free = floor.free | body | (around & ~obstacle)
     return FloorMap(obstacle, free, floor.lower_xy, res)
@@ -217,17 +225,6 @@ def _block(floor: FloorMap, points: np.ndarray) -> FloorMap:
     """The floor map with an obstacle within ``_BLOCKED_M`` of each of ``points`` (finite
     ones; those off the map change nothing)."""
     res = floor.resolution_m
-    h, w = floor.shape
-    ys = floor.lower_xy[1] + (np.arange(h) + 0.5) * res
-    xs = floor.lower_xy[0] + (np.arange(w) + 0.5) * res
-    obstacle = floor.obstacle.copy()
-    k = math.ceil(_BLOCKED_M / res) + 1
-    for x, y in points[np.isfinite(points).all(axis=1)]:
-        row = math.floor((y - floor.lower_xy[1]) / res)
-        col = math.floor((x - floor.lower_xy[0]) / res)
-        r0, r1, c0, c1 = max(0, row - k), min(h, row + k + 1), max(0, col - k), min(w, col + k + 1)
-        if r0 >= r1 or c0 >= c1:
-            continue
-        d = np.hypot(xs[None, c0:c1] - x, ys[r0:r1, None] - y)
-        obstacle[r0:r1, c0:c1] |= d <= _BLOCKED_M + res / 2
+    obstacle = floor.obstacle | (_distance_to_points(floor, points, _BLOCKED_M + res)
+                                 <= _BLOCKED_M + res / 2)  # fmt: skip
     return FloorMap(obstacle, floor.free & ~obstacle, floor.lower_xy, res)
