@@ -140,6 +140,7 @@ class EventMaker:
                 None if to_c is None or to_a is None else (to_c, to_a), builder.settings,
                 ([_predict(builder, ka, k, config) for k in third],
                  [_predict(builder, kc, k, config) for k in third]),
+                [s.detections for r, s in in_dwell.items() if r not in (reference, mapper)],
             )  # fmt: skip
             if seen_a is None or seen_c is None:
                 self.unseen.append(
@@ -209,6 +210,7 @@ def _pair(
     predicted: tuple[tuple[float, float], tuple[float, float]] | None,
     settings: GraphSettings,
     others: tuple[list[tuple[float, float] | None], list[tuple[float, float] | None]] = ([], []),
+    thirds: Sequence[list[BeaconDetection]] = (),
 ) -> tuple[BeaconDetection | None, BeaconDetection | None]:
     """The two robots' detections of each other's beacon (A's of C's, C's of A's), or Nones.
 
@@ -223,27 +225,59 @@ def _pair(
     A, of A's from C), or without an estimate the best agreeing, then the best fitted. With
     no agreeing pair the nearest predicted one is taken, and the gate refuses it (generated
     building 103, three robots: c's beacon, 2.6 m from a, taken for b's, 5 m off, at six
-    scan poses in a row; building 104: three robots placed side by side never tied a to b)."""
+    scan poses in a row; building 104: three robots placed side by side never tied a to b).
+
+    A detection is a third robot's beacon beyond doubt when that robot's own sweep of the
+    dwell (``thirds``: each third robot's detections) agrees with it as well, and the
+    estimate places its beacon nearer than the partner's: no pair holding one is taken
+    (building 101, three robots: a's sweep held c's beacon 2.643 m away and b's held a's
+    2.666 m away, and the pair, 182 cm and 46° off, passed every gate)."""
     if not seen_a or not seen_c:
         return None, None
     s = settings
     rows = []
     for i, a in enumerate(seen_a):
         for j, c in enumerate(seen_c):
-            z = (a.range_m, a.bearing_rad, c.range_m, c.bearing_rad)
-            s1, s2 = separations(*z, s.beacon_offset_m)
-            spread = gap_sigma(*z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad)
-            gap = abs(float(s1) - float(s2))
-            agree = gap <= s.gate_sigmas * float(spread)
+            agree = _agree(a, c, s)
             if predicted is None:
-                third, near = False, gap
+                third, near = False, _gap(a, c, s)[0]
+                taken = False
             else:
-                third = (_third(a, predicted[0], others[0])
-                         or _third(c, predicted[1], others[1]))  # fmt: skip
+                third_a, third_c = (
+                    _third(a, predicted[0], others[0]),
+                    _third(c, predicted[1], others[1]),
+                )
+                third = third_a or third_c
                 near = _apart(a, predicted[0]) + _apart(c, predicted[1])
-            rows.append((not agree, third, near, -(a.quality + c.quality), i, j))
-    *_, i, j = min(rows)
+                taken = (third_a and _claimed(a, thirds, s)) or (third_c and _claimed(c, thirds, s))
+            rows.append((not agree, taken, third, near, -(a.quality + c.quality), i, j))
+    best = min(rows)
+    if best[1]:
+        return None, None
+    *_, i, j = best
     return seen_a[i], seen_c[j]
+
+
+def _gap(a: BeaconDetection, c: BeaconDetection, s: GraphSettings) -> tuple[float, float]:
+    """|s1 − s2| of two detections taken as a mutual observation, and its predicted spread."""
+    z = (a.range_m, a.bearing_rad, c.range_m, c.bearing_rad)
+    s1, s2 = separations(*z, s.beacon_offset_m)
+    spread = gap_sigma(*z, s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad)
+    return abs(float(s1) - float(s2)), float(spread)
+
+
+def _agree(a: BeaconDetection, c: BeaconDetection, s: GraphSettings) -> bool:
+    """Whether two detections measure the same distance between the beacons (the s1/s2 gate)."""
+    gap, spread = _gap(a, c, s)
+    return gap <= s.gate_sigmas * spread
+
+
+def _claimed(
+    detection: BeaconDetection, thirds: Sequence[list[BeaconDetection]], s: GraphSettings
+) -> bool:
+    """Whether a third robot's sweep holds a detection that agrees with ``detection`` as the
+    two robots' mutual observation (it measures the same distance between them)."""
+    return any(_agree(detection, e, s) for seen in thirds for e in seen)
 
 
 def _predict(

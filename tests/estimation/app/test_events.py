@@ -190,3 +190,37 @@ def test_a_third_robots_beacon_ranks_after_the_partners() -> None:
     # Nothing ruled out without a prediction, or by a robot the estimate does not place.
     assert not _third(a_sees_c, None, [to_c])
     assert not _third(a_sees_c, to_b, [None])
+
+
+def about_a_beacon(pose: list[float], turn_rad: float) -> list[float]:
+    """A scanner pose in A's frame turned about A's beacon: its beacon stays as far from A's."""
+    x, y, theta = pose
+    co, si = math.cos(turn_rad), math.sin(turn_rad)
+    return [D + co * (x - D) - si * y, si * (x - D) + co * y, theta + turn_rad]
+
+
+def test_a_beacon_that_the_third_robots_own_sweep_claims_is_never_the_partners() -> None:
+    """Generated building 101: a's sweep held c's beacon (b's hidden), b's held a's, and c
+    stood as far from a as b did, so the pair agreed. c's own sweep of a agrees with a's
+    detection and the estimate places c there: no pair is taken."""
+    b_pose = [2.2, 1.4, -2.3]
+    a_sees_b, b_sees_a = seen(b_pose)
+    a_sees_c, c_sees_a = seen(about_a_beacon(b_pose, math.radians(-46.0)))
+    predicted = ((a_sees_b.range_m, a_sees_b.bearing_rad), (b_sees_a.range_m, b_sees_a.bearing_rad))
+    to_c = (a_sees_c.range_m, a_sees_c.bearing_rad)
+    others = ([to_c], [None])
+    # Without c's sweep the agreeing pair is taken (and the graph's gates must judge it).
+    assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS, others) == (a_sees_c, b_sees_a)
+    assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS, others, [[c_sees_a]]) == (None, None)
+    # a sees both beacons: b's is taken.
+    both = [a_sees_c, a_sees_b], [b_sees_a]
+    assert _pair(*both, predicted, SETTINGS, others, [[c_sees_a]]) == (a_sees_b, b_sees_a)
+    # c's sweep agrees with b's beacon too, but the estimate places b there: it is taken.
+    assert _pair([a_sees_b], [b_sees_a], predicted, SETTINGS, others, [[c_sees_a]]) == (
+        a_sees_b,
+        b_sees_a,
+    )
+    # A sweep of c that sees something else claims nothing; no estimate rules out nothing.
+    elsewhere = [detection(c_sees_a.range_m + 0.8, c_sees_a.bearing_rad)]
+    assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS, others, [elsewhere])[0] is a_sees_c
+    assert _pair([a_sees_c], [b_sees_a], None, SETTINGS, others, [[c_sees_a]])[0] is a_sees_c
