@@ -45,6 +45,7 @@ from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.mission.turns import RETRIES, fly_turn
 from estimation.app.mission.view import MapView
+from estimation.app.mission.work import WorkClock
 from estimation.app.pipeline import finish_isam, isam_options, prepare
 from estimation.app.results import BatchOutput
 from estimation.app.rig import scan_limits, station_params
@@ -138,9 +139,7 @@ class MissionLoop:
         self.index = dict.fromkeys(self.robots, 0)
         self.now_s = 0.0
         self._fed = 0
-        self.work_s: list[float] = []  # per dwell: from its end to the next command
-        self.waited_s: list[float] = []  # per wait on the concurrent localization (not work)
-        self._since: float | None = None
+        self.clock = WorkClock()
         self._dwells = 0
         self.localizations: list[dict[str, Any]] = []
         self.retries: list[str] = []
@@ -176,18 +175,22 @@ class MissionLoop:
         for entry in got.events:
             if entry["event"] == "move":
                 self.index[entry["robot"]] = int(entry["to_index"])
+        clock = self.clock.mark()
         streams = {r: d.stream() for r, d in self.decoders.items()}
         new = []
         for number in range(self._fed, len(self.entries)):
             new += self.maker.feed(number, self.entries[number], streams)
         self._fed = len(self.entries)
+        clock = self.clock.part("events", clock)
         for event in new:
             self.smoother.add(event)
         self.now_s = got.now_s
         if self.localizer.busy:
             self._collect(wait=True)
         self.estimate = self.smoother.estimate()
+        clock = self.clock.part("isam2", clock)
         self.map.update(sweeps_before_changes(self.entries, self.maker.sweeps), self.estimate)
+        self.clock.part("fusion", clock)
 
     def _mutual_factors(self) -> int:
         return sum(1 for f in self.smoother.builder.factors if f.kind == "mutual")
@@ -195,29 +198,22 @@ class MissionLoop:
     def dwell(self, **fields: Any) -> bool:
         """Every robot dwells for a sweep; the loop takes in what they recorded. True if the
         dwell's reference and mapper gave an accepted mutual observation."""
-        self._work_done()
+        self.clock.done()
         self.fleet.dwell(**fields)
-        self._since = time.perf_counter()
+        self.clock.start()
         before = self._mutual_factors()
         self._sync()
         self._dwells += 1
         if self.observe is not None:
             began = time.perf_counter()
             self.observe(self)
-            self._since += time.perf_counter() - began
+            self.clock.exclude(time.perf_counter() - began)
         return self._mutual_factors() > before
 
     @property
     def dwells(self) -> int:
         """How many dwells the loop took in."""
         return self._dwells
-
-    def _work_done(self) -> None:
-        """The loop's work after a dwell ends when it gives the robots their next command:
-        taking in the recordings, iSAM2, fusion and choosing the goal all count."""
-        if self._since is not None:
-            self.work_s.append(time.perf_counter() - self._since)
-            self._since = None
 
     def pose(self, robot: str) -> np.ndarray:
         """Where the loop believes ``robot`` stands now: its estimate, or, before its first
@@ -253,13 +249,11 @@ class MissionLoop:
         pending = self.localizer.busy and not was_ready
         began = time.perf_counter()
         done = self.localizer.collect(self.now_s, wait=wait)
-        if pending and self._since is not None:
+        if pending:
             # Waiting on the worker is not the loop's work: a simulated dwell takes no time,
             # a real one the 31 s of a sweep, in which the worker runs (its own time and
             # budget are reported per station).
-            waited = time.perf_counter() - began
-            self._since += waited
-            self.waited_s.append(waited)
+            self.clock.exclude(time.perf_counter() - began, waited=True)
         if done is None:
             return
         _, submitted_s, collected_s = self.localizer.done[-1]
@@ -280,7 +274,7 @@ class MissionLoop:
     def go(self, robot: str, pose: np.ndarray, path: list[np.ndarray] | None) -> bool:
         """Send one goal; ``path`` None: an absolute goal of an explicit plan."""
         believed = None if path is None else tuple(float(v) for v in self.pose(robot))
-        self._work_done()
+        self.clock.done()
         status = self.fleet.move(Goal(
             robot, (float(pose[0]), float(pose[1]), float(pose[2])),
             tuple((float(p[0]), float(p[1])) for p in path or []),
@@ -307,7 +301,7 @@ class MissionLoop:
             if self.mission.changes is not None:
                 self.changed = self.fleet.change_world(self.mission.changes)
                 self.dwell(phase="relocalize", step=len(self.steps))
-            self._work_done()
+            self.clock.done()
         finally:
             self.localizer.close()
         return reason
@@ -544,7 +538,6 @@ class MissionLoop:
             writer.discard()
 
     def figures(self, stop_reason: str, fleet_counts: dict[str, Any]) -> dict[str, Any]:
-        work = np.array(self.work_s) if self.work_s else np.zeros(1)
         next_map = next_map_seconds(self.entries)
         localizations = []
         for item in self.localizations:
@@ -556,12 +549,8 @@ class MissionLoop:
             "duration_s": self.now_s,
             "changed": self.changed,
             "dwells": self._dwells,
-            "work_per_dwell_s": {"median": float(np.median(work)),
-                                 "p99": float(np.percentile(work, 99)), "max": float(work.max())},
+            **self.clock.summary(),
             "map_refusions": self.map.refusions,
-            "localization_waits_s": {"count": len(self.waited_s),
-                                     "total": float(sum(self.waited_s)),
-                                     "max": float(max(self.waited_s, default=0.0))},
             "concurrent_localization": localizations,
             "retried_observations": self.retries,
             "unobserved_scans": self.unobserved,

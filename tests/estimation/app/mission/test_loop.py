@@ -14,6 +14,7 @@ import yaml
 from estimation.app.dataset import mapping_sweeps, stations
 from estimation.app.mission.fleet import SimulatedFleet
 from estimation.app.mission.loop import MissionLoop
+from estimation.app.mission.work import PARTS
 from estimation.app.pipeline import prepare, run_batch, unobserved_stations
 from estimation.app.sim.simulate import (
     SimulationResult,
@@ -96,6 +97,11 @@ def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) 
     assert 0 < loop["work_per_dwell_s"]["median"] <= loop["work_per_dwell_s"]["p99"] < 5.0
     waits = loop["localization_waits_s"]
     assert 0 <= waits["max"] <= waits["total"]
+    parts = loop["work_parts_s"]
+    slowest = parts["slowest_dwell"]
+    assert slowest["work"] == pytest.approx(loop["work_per_dwell_s"]["max"])
+    assert sum(slowest[p] for p in PARTS) == pytest.approx(slowest["work"], abs=1e-3)
+    assert all(0 < parts[p]["median"] <= parts[p]["max"] for p in PARTS)
     assert waits["count"] <= len(loop["concurrent_localization"])
     assert [item["station"] for item in loop["concurrent_localization"]] == ["a0", "b3"]
     assert loop["concurrent_localization"][-1]["next_map_mission_s"] is None

@@ -1,0 +1,90 @@
+"""The mission loop's work per dwell: from the end of a dwell to the robots' next command, in
+parts (events, iSAM2, map fusion; the rest is choosing the goal), without the time spent
+waiting on the concurrent global localization, which runs during the robots' next sweep."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = ["PARTS", "WorkClock"]
+
+#: The parts of a dwell's work: decoding and beacon detection into events, the iSAM2 update
+#: with the estimate, fusing the sweeps at the estimate, and the rest, mostly choosing the goal.
+PARTS = ("events", "isam2", "fusion", "goal")
+
+
+class WorkClock:
+    """Times the loop's work per dwell (``work_s``), its parts (``parts``), and its waits on
+    the concurrent localization (``waited_s``, not work)."""
+
+    def __init__(self) -> None:
+        self.work_s: list[float] = []
+        self.parts: list[dict[str, float]] = []
+        self.waited_s: list[float] = []
+        self._since: float | None = None
+        self._excluded = 0.0  # all time excluded so far
+        self._part = dict.fromkeys(PARTS, 0.0)
+
+    @property
+    def running(self) -> bool:
+        """Whether a dwell's work is being timed."""
+        return self._since is not None
+
+    def start(self) -> None:
+        """A dwell has ended: its work begins."""
+        self._since = time.perf_counter()
+        self._part = dict.fromkeys(PARTS, 0.0)
+
+    def exclude(self, seconds: float, waited: bool = False) -> None:
+        """Time that is not the dwell's work (a wait on the worker when ``waited``)."""
+        if self._since is not None:
+            self._since += seconds
+            self._excluded += seconds
+            if waited:
+                self.waited_s.append(seconds)
+
+    def mark(self) -> tuple[float, float]:
+        """Now, for :meth:`part`."""
+        return time.perf_counter(), self._excluded
+
+    def part(self, name: str, since: tuple[float, float]) -> tuple[float, float]:
+        """Count the work from ``since`` (a :meth:`mark`) to now, without the time excluded in
+        between, to part ``name``; returns a mark of now."""
+        now = self.mark()
+        if self._since is not None:
+            self._part[name] += (now[0] - since[0]) - (now[1] - since[1])
+        return now
+
+    def done(self) -> None:
+        """The robots get their next command: the dwell's work ends."""
+        if self._since is not None:
+            work = time.perf_counter() - self._since
+            self._part["goal"] = max(0.0, work - sum(self._part.values()))
+            self.work_s.append(work)
+            self.parts.append(self._part)
+            self._since = None
+
+    def summary(self) -> dict[str, Any]:
+        """``report.json``'s figures: work per dwell (median, p99, max), each part's median,
+        p99 and max, the parts of the slowest dwell, and the waits."""
+        work = np.array(self.work_s) if self.work_s else np.zeros(1)
+        parts: dict[str, Any] = {}
+        for name in PARTS:
+            values = np.array([p[name] for p in self.parts]) if self.parts else np.zeros(1)
+            parts[name] = _spread(values)
+        if self.parts:
+            slowest = int(np.argmax(work))
+            shares = {k: round(v, 4) for k, v in self.parts[slowest].items()}
+            parts["slowest_dwell"] = {"work": float(work[slowest]), **shares}
+        waits = {"count": len(self.waited_s), "total": float(sum(self.waited_s)),
+                 "max": float(max(self.waited_s, default=0.0))}  # fmt: skip
+        return {"work_per_dwell_s": _spread(work), "work_parts_s": parts,
+                "localization_waits_s": waits}  # fmt: skip
+
+
+def _spread(values: np.ndarray) -> dict[str, float]:
+    return {"median": float(np.median(values)), "p99": float(np.percentile(values, 99)),
+            "max": float(values.max())}  # fmt: skip

@@ -1,0 +1,55 @@
+"""The loop's work per dwell: its parts, and the waits on the worker that are not work."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from estimation.app.mission.work import PARTS, WorkClock
+
+
+def test_work_is_timed_from_a_dwells_end_to_the_next_command_without_the_waits() -> None:
+    clock = WorkClock()
+    clock.done()  # no dwell yet: nothing timed
+    assert clock.work_s == []
+    assert not clock.running
+    began_all = time.perf_counter()
+    clock.start()
+    mark = clock.mark()
+    time.sleep(0.02)
+    mark = clock.part("events", mark)
+    began = time.perf_counter()
+    time.sleep(0.05)  # waiting on the worker
+    clock.exclude(time.perf_counter() - began, waited=True)
+    time.sleep(0.01)
+    clock.part("isam2", mark)
+    clock.done()
+    elapsed = time.perf_counter() - began_all
+    (work,) = clock.work_s
+    parts = clock.parts[0]
+    waited = clock.waited_s[0]
+    assert waited >= 0.05
+    assert parts["events"] >= 0.02
+    # the wait is taken out of the part it fell in and out of the dwell's work
+    assert 0.01 <= parts["isam2"] < elapsed - waited
+    assert parts["fusion"] == 0.0
+    assert sum(parts.values()) == pytest.approx(work)
+    assert work == pytest.approx(elapsed - waited, abs=0.005)
+    summary = clock.summary()
+    waits = summary["localization_waits_s"]
+    assert waits["count"] == 1
+    assert waits["total"] == waits["max"] == waited
+    assert summary["work_parts_s"]["slowest_dwell"]["work"] == work
+    assert set(summary["work_parts_s"]) == {*PARTS, "slowest_dwell"}
+
+
+def test_time_outside_a_dwells_work_counts_nowhere() -> None:
+    clock = WorkClock()
+    mark = clock.mark()
+    clock.part("fusion", mark)
+    clock.exclude(3.0, waited=True)
+    summary = clock.summary()
+    assert summary["localization_waits_s"]["count"] == 0
+    assert summary["work_per_dwell_s"] == {"median": 0.0, "p99": 0.0, "max": 0.0}
+    assert "slowest_dwell" not in summary["work_parts_s"]
