@@ -24,7 +24,7 @@ from mapping.kernels.blocks import (
     first_bad_point,
     rebuild_table,
 )
-from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks
+from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks, segment_blocked
 from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.logodds import logodds, probability
 from mapping.storage import BlockStorage, discard_scan_cube, scan_cube, stored_bounds
@@ -380,6 +380,37 @@ class OccupancyGrid:
             )
         )
 
+    def segment_blocked(
+        self,
+        start: np.ndarray,
+        end: np.ndarray,
+        *,
+        unknown_blocks: bool,
+        ignore_xy: np.ndarray,
+        ignore_radius_m: float,
+    ) -> bool:
+        """Whether a cell that the segment ``start`` → ``end`` (cell units, as
+        ``mapping.kernels.traversal.ray_cells`` takes them; the end cell included) visits is
+        occupied or, with ``unknown_blocks``, unknown; cells whose centre lies within
+        ``ignore_radius_m`` of a point of ``ignore_xy`` (N, 2; metres) in the plane are not
+        tested."""
+        ends = np.floor(np.stack([np.asarray(start, float), np.asarray(end, float)]))
+        if ends.shape != (2, 3) or not np.isfinite(ends).all():
+            raise MapError(f"a segment needs two finite 3D end points, got {start} and {end}")
+        if np.abs(ends).max() >= self._max_cells:
+            raise MapError(f"cell index {int(np.abs(ends).max())} beyond the addressable map")
+        store = self._store
+        return bool(
+            segment_blocked(
+                np.asarray(start, np.float64), np.asarray(end, np.float64),
+                self.origin_m, self.resolution_m,
+                np.ascontiguousarray(ignore_xy, dtype=np.float64).reshape(-1, 2),
+                float(ignore_radius_m), bool(unknown_blocks), self.params.logodds_threshold,
+                store.table[0], store.table[1], store.shift, store.logodds, store.known,
+                store.lut, self.params.block_size_cells,
+            )
+        )  # fmt: skip
+
     def probability_at(self, points: np.ndarray) -> np.ndarray:
         """(N,) probability of occupancy at (N, 3) points; 0.5 where unknown."""
         values = self.logodds_at(self.cell_of(points))
@@ -397,10 +428,18 @@ class OccupancyGrid:
         return cells[keep], probability(values[keep])
 
     def bounds_cells(self) -> tuple[np.ndarray, np.ndarray]:
-        """Smallest and largest known cell index per axis; MapError when nothing is known."""
-        cells, _ = self.cells()
-        if len(cells) == 0:
+        """Smallest and largest known cell index per axis; MapError when nothing is known.
+        Only the blocks at the edges of the known blocks are decoded."""
+        n, bs = self.block_count, self.params.block_size_cells
+        rows = np.flatnonzero(self._store.known[:n].any(axis=1))
+        if len(rows) == 0:
             raise MapError("the grid is empty: no cell has been observed")
+        coords = self._store.coords[rows]
+        low, high = coords.min(axis=0), coords.max(axis=0)
+        edge = rows[((coords == low) | (coords == high)).any(axis=1)]
+        bits = np.unpackbits(self._store.known[edge], axis=1, bitorder="little")
+        block, flat = np.nonzero(bits[:, : bs**3])
+        cells = self._store.coords[edge][block] * bs + self._local_of_flat()[flat]
         return cells.min(axis=0), cells.max(axis=0)
 
     # -- blocks (for file formats and resampling) ---------------------------------------------

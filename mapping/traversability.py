@@ -28,7 +28,6 @@ from scipy import ndimage
 from mapping.band import Band, extract_band
 from mapping.errors import MapError
 from mapping.grid import OccupancyGrid
-from mapping.kernels.traversal import ray_cells
 from sensors.sim.planner import FreeSpace
 
 __all__ = [
@@ -324,17 +323,11 @@ def line_of_sight(
     first = start + (end - start) * (start_clearance_m / length)
     stop = start + (end - start) * (1.0 - end_clearance_m / length)
     origin, res = grid.origin_m, grid.resolution_m
-    cells = ray_cells((first - origin) / res, (stop - origin) / res, True)
-    if ignore_xy is not None and len(ignore_xy) and ignore_radius_m > 0:
-        centres = grid.cell_centers(cells)[:, :2]
-        points = np.asarray(ignore_xy, dtype=float).reshape(-1, 2)
-        near = np.hypot(centres[:, None, 0] - points[None, :, 0],
-                        centres[:, None, 1] - points[None, :, 1]) <= ignore_radius_m  # fmt: skip
-        cells = cells[~near.any(axis=1)]
-    values = grid.logodds_at(cells)
-    if unknown_blocks and np.isnan(values).any():
-        return False
-    return not bool(np.any(values > grid.params.logodds_threshold))
+    ignore = np.zeros((0, 2)) if ignore_xy is None else np.asarray(ignore_xy, dtype=float)
+    return not grid.segment_blocked(
+        (first - origin) / res, (stop - origin) / res, unknown_blocks=unknown_blocks,
+        ignore_xy=ignore, ignore_radius_m=ignore_radius_m if len(ignore) else 0.0,
+    )  # fmt: skip
 
 
 def _distance_to(mask: np.ndarray, resolution_m: float) -> np.ndarray:

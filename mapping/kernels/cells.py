@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 
 from mapping.kernels.blocks import EMPTY_KEY, find_block, find_or_add_block, pack_block, split
+from mapping.kernels.traversal import ray_cells
 
 
 @njit(cache=True)
@@ -232,3 +233,55 @@ def resample_blocks(
                 logodds[blk, f] = vals[f]
                 known[blk, f >> 3] |= np.uint8(1 << (f & 7))
     return len(targets)
+
+
+@njit(cache=True)
+def segment_blocked(
+    start: np.ndarray,
+    end: np.ndarray,
+    origin: np.ndarray,
+    resolution: float,
+    ignore_xy: np.ndarray,
+    ignore_radius: float,
+    unknown_blocks: bool,
+    threshold: float,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+) -> bool:
+    """Whether a cell the segment ``start`` → ``end`` (cell units, end cell included) visits
+    is occupied (log-odds above ``threshold``) or, with ``unknown_blocks``, unknown; cells
+    whose centre lies within ``ignore_radius`` (in the plane) of a point of ``ignore_xy``
+    (N, 2; grid frame, metres) are not tested. The cells are ``ray_cells``'s."""
+    cells = ray_cells(start, end, True)
+    last_key = EMPTY_KEY
+    blk = -1
+    for n in range(len(cells)):
+        if ignore_radius > 0:
+            cx = origin[0] + (cells[n, 0] + 0.5) * resolution
+            cy = origin[1] + (cells[n, 1] + 0.5) * resolution
+            near = False
+            for p in range(len(ignore_xy)):
+                if math.hypot(cx - ignore_xy[p, 0], cy - ignore_xy[p, 1]) <= ignore_radius:
+                    near = True
+                    break
+            if near:
+                continue
+        bx, lx = split(cells[n, 0], bs)
+        by, ly = split(cells[n, 1], bs)
+        bz, lz = split(cells[n, 2], bs)
+        key = pack_block(bx, by, bz)
+        if key != last_key:
+            blk = find_block(table_keys, table_vals, shift, bx, by, bz)
+            last_key = key
+        flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
+        if blk < 0 or not (known[blk, flat >> 3] >> (flat & 7)) & 1:
+            if unknown_blocks:
+                return True
+        elif logodds[blk, flat] > threshold:
+            return True
+    return False

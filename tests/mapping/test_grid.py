@@ -171,3 +171,18 @@ def test_bad_cells_are_rejected() -> None:
         grid.bounds_cells()
     with pytest.raises(MapError, match=r"need one value per cell: 1 for 2"):
         OccupancyGrid.from_cells(GridParams(), np.zeros((2, 3), int), np.zeros(1))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_bounds_of_the_known_cells_are_those_of_the_listed_cells(seed: int) -> None:
+    """Scattered cells in blocks of every sign, some blocks known only in part: the bounds read
+    from the edge blocks alone are the listed cells' extremes."""
+    rng = np.random.default_rng(seed)
+    grid = OccupancyGrid(GridParams(resolution_m=0.1, block_size_cells=8))
+    cells = rng.integers(-70, 70, size=(int(rng.integers(1, 40)), 3))
+    grid.apply_evidence(cells, np.full(len(cells), 0.7))
+    listed, _ = grid.cells()
+    low, high = grid.bounds_cells()
+    np.testing.assert_array_equal(low, listed.min(axis=0))
+    np.testing.assert_array_equal(high, listed.max(axis=0))
+    np.testing.assert_array_equal(low, cells.min(axis=0))

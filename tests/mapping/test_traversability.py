@@ -9,6 +9,7 @@ import pytest
 
 from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
+from mapping.kernels.traversal import ray_cells
 from mapping.traversability import (
     FloorMap,
     Frontier,
@@ -359,3 +360,47 @@ def test_unvisited_rooms_refuse_bad_input_and_need_drivable_floor() -> None:
     assert unvisited_rooms(closed, np.array([[1.0, 1.0]]), **ROOM_LEVELS) == []
     # Places off the map count for nothing.
     assert len(unvisited_rooms(space, np.array([[1.5, 2.0], [-50.0, 2.0]]), **ROOM_LEVELS)) == 1
+
+
+def reference_sight(
+    grid: OccupancyGrid, start: np.ndarray, end: np.ndarray, unknown_blocks: bool,
+    ignore_xy: np.ndarray, radius_m: float,
+) -> bool:  # fmt: skip
+    """Line of sight cell by cell: the traversal's cells, their log-odds, the ignored ones."""
+    origin, res = grid.origin_m, grid.resolution_m
+    cells = ray_cells((start - origin) / res, (end - origin) / res, True)
+    if len(ignore_xy) and radius_m > 0:
+        centres = grid.cell_centers(cells)[:, :2]
+        gap = centres[:, None, :] - ignore_xy[None, :, :]
+        cells = cells[~(np.hypot(gap[..., 0], gap[..., 1]) <= radius_m).any(axis=1)]
+    values = grid.logodds_at(cells)
+    if unknown_blocks and np.isnan(values).any():
+        return False
+    return not bool(np.any(values > grid.params.logodds_threshold))
+
+
+def test_line_of_sight_tests_the_cells_of_the_fusions_traversal(grid: OccupancyGrid) -> None:
+    """400 segments through the scanned room, in and out of what was seen, with and without
+    unknown cells blocking and with robots' places ignored: as tested cell by cell."""
+    rng = np.random.default_rng(4)
+    outcomes = set()
+    for n in range(400):
+        a = rng.uniform((-0.3, -0.3, 0.0), (7.0, 3.3, 2.6))
+        b = rng.uniform((-0.3, -0.3, 0.0), (7.0, 3.3, 2.6))
+        unknown = bool(n % 2)
+        ignore = rng.uniform((0.0, 0.0), (6.0, 3.0), size=(n % 4, 2))
+        radius = 0.4 if n % 3 else 0.0
+        expected = reference_sight(grid, a, b, unknown, ignore, radius)
+        seen = line_of_sight(grid, a, b, end_clearance_m=0.0, unknown_blocks=unknown,
+                             ignore_xy=ignore, ignore_radius_m=radius)  # fmt: skip
+        assert seen is expected
+        outcomes.add(seen)
+    assert outcomes == {True, False}
+
+
+def test_a_segment_beyond_the_addressable_map_is_an_error(grid: OccupancyGrid) -> None:
+    with pytest.raises(MapError, match="addressable"):
+        line_of_sight(grid, SENSOR, np.array([1e12, 0.0, 0.0]))
+    with pytest.raises(MapError, match="finite"):
+        grid.segment_blocked(np.zeros(3), np.array([np.inf, 0, 0]), unknown_blocks=True,
+                             ignore_xy=np.zeros((0, 2)), ignore_radius_m=0.0)  # fmt: skip

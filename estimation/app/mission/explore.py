@@ -178,12 +178,18 @@ class Explorer:
     given_up: list[np.ndarray] = field(default_factory=list)  # frontier centroids
     retried: list[np.ndarray] = field(default_factory=list)  # given up once, tried again
     target: _Target | None = None
+    _taken_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
 
     def _taken(self, pose: np.ndarray) -> bool:
+        # ``taken`` only grows: its places as one array, to find the few nearby at once.
+        if len(self._taken_xy) != len(self.taken):
+            self._taken_xy = np.array([p[:2] for p in self.taken], dtype=float).reshape(-1, 2)
+        gap = self._taken_xy - np.asarray(pose[:2], dtype=float)
+        near = np.flatnonzero(np.hypot(gap[:, 0], gap[:, 1]) < _SAME_M + 1e-9)
         return any(
             math.dist(pose[:2], p[:2]) < _SAME_M
             and abs(math.remainder(pose[2] - p[2], 2 * math.pi)) < _SAME_RAD
-            for p in self.taken
+            for p in (self.taken[i] for i in near)
         )
 
     def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Target | None:

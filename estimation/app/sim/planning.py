@@ -207,28 +207,32 @@ def mapper_candidates(
     ref: np.ndarray, geometry: BeaconGeometry, band: tuple[float, float]
 ) -> list[np.ndarray]:
     """Mapper poses in the reference's front sectors, facing it at ±25°."""
-    origin = geometry.scanner(ref)
+    # In Python floats, operation for operation as on 2-vectors: numpy's small arrays cost
+    # more than the arithmetic, and a planner asks for a hundred candidates per heading.
+    x, y, yaw0 = float(ref[0]), float(ref[1]), float(ref[2])
+    c0, s0 = math.cos(yaw0), math.sin(yaw0)
+    ox, oy = x + geometry.scanner_x * c0, y + geometry.scanner_x * s0
+    rx, ry = x + geometry.ahead * c0, y + geometry.ahead * s0  # the reference's beacon
+    ahead, scanner_x, tilt = geometry.ahead, geometry.scanner_x, math.radians(25)
     out = []
-    for distance in np.linspace(band[0], band[1], 5):
+    for distance in np.linspace(band[0], band[1], 5).tolist():
         for side in (-1, 1):
             for bearing_deg in (16, 20, 25, 33, 41):
-                direction = ref[2] + side * math.radians(bearing_deg)
-                beacon = origin + distance * np.array([math.cos(direction), math.sin(direction)])
+                direction = yaw0 + side * math.radians(bearing_deg)
+                bx = ox + distance * math.cos(direction)
+                by = oy + distance * math.sin(direction)
                 for turn in (-1, 1):
-                    # Solve for a robot pose whose beacon sits at ``beacon`` and that sees the
-                    # reference's beacon at ±25°: iterate the geometry twice.
-                    yaw = math.atan2(*(geometry.beacon(ref) - beacon)[::-1]) - turn * math.radians(
-                        25
-                    )
+                    # Solve for a robot pose whose beacon sits at (bx, by) and that sees the
+                    # reference's beacon at ±25°: iterate the geometry.
+                    yaw = math.atan2(ry - by, rx - bx) - turn * tilt
                     for _ in range(3):
-                        position = beacon - geometry.ahead * np.array(
-                            [math.cos(yaw), math.sin(yaw)]
-                        )
-                        pose = np.array([*position, yaw])
-                        to_ref = geometry.beacon(ref) - geometry.scanner(pose)
-                        yaw = math.atan2(to_ref[1], to_ref[0]) - turn * math.radians(25)
-                    position = beacon - geometry.ahead * np.array([math.cos(yaw), math.sin(yaw)])
-                    out.append(np.array([*position, yaw]))
+                        c, s = math.cos(yaw), math.sin(yaw)
+                        px, py = bx - ahead * c, by - ahead * s
+                        to_x = rx - (px + scanner_x * c)
+                        to_y = ry - (py + scanner_x * s)
+                        yaw = math.atan2(to_y, to_x) - turn * tilt
+                    out.append(np.array([bx - ahead * math.cos(yaw), by - ahead * math.sin(yaw),
+                                         yaw]))  # fmt: skip
     return out
 
 
