@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import njit
 
 from estimation.app.config import Config
 from estimation.app.sim.planning import BeaconGeometry, CoverageModel, grid_graph
@@ -130,19 +131,12 @@ class MapView:
         floor, grid = self.floor, self.grid
         a, b = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
         steps = max(2, math.ceil(2.0 * float(np.linalg.norm(b - a)) / grid.resolution_m) + 1)
-        points = a + np.linspace(0.0, 1.0, steps)[:, None] * (b - a)
-        gap = points[:, None, :2] - self.robots[None, :, :]
-        points = points[(np.hypot(gap[..., 0], gap[..., 1]) <= self._ignore_m).any(axis=1)]
-        res = floor.resolution_m
-        cols = np.floor((points[:, 0] - floor.lower_xy[0]) / res).astype(np.int64)
-        rows = np.floor((points[:, 1] - floor.lower_xy[1]) / res).astype(np.int64)
-        h, w = floor.shape
-        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        under = np.zeros(len(points), dtype=bool)
-        under[inside] = floor.obstacle[rows[inside], cols[inside]]
-        if not under.any():
+        points = _over_obstacles(a, b, steps, self.robots, self._ignore_m, floor.obstacle,
+                                 float(floor.lower_xy[0]), float(floor.lower_xy[1]),
+                                 float(floor.resolution_m))  # fmt: skip
+        if not len(points):
             return False
-        cells = np.floor((points[under] - np.asarray(grid.origin_m)) / grid.resolution_m)
+        cells = np.floor((points - np.asarray(grid.origin_m)) / grid.resolution_m)
         values = grid.logodds_at(cells.astype(np.int64))
         return bool(np.any(values > grid.params.logodds_threshold))
 
@@ -228,3 +222,36 @@ def _block(floor: FloorMap, points: np.ndarray) -> FloorMap:
     obstacle = floor.obstacle | (_distance_to_points(floor, points, _BLOCKED_M + res)
                                  <= _BLOCKED_M + res / 2)  # fmt: skip
     return FloorMap(obstacle, floor.free & ~obstacle, floor.lower_xy, res)
+
+
+@njit(cache=True)
+def _over_obstacles(
+    a: np.ndarray, b: np.ndarray, steps: int, robots: np.ndarray, reach_m: float,
+    obstacle: np.ndarray, lower_x: float, lower_y: float, resolution_m: float,
+) -> np.ndarray:  # fmt: skip
+    """Of ``steps`` points evenly along a → b (ends included, as ``np.linspace`` places them),
+    those within ``reach_m`` (in the plane) of a robot that lie over an obstacle cell of the
+    floor map (``obstacle``, rows y, columns x, from ``lower_x``, ``lower_y``)."""
+    out = np.empty((steps, 3))
+    n = 0
+    h, w = obstacle.shape
+    step = 1.0 / (steps - 1)
+    for i in range(steps):
+        t = 1.0 if i == steps - 1 else i * step
+        x = a[0] + t * (b[0] - a[0])
+        y = a[1] + t * (b[1] - a[1])
+        near = False
+        for r in range(len(robots)):
+            if math.hypot(x - robots[r, 0], y - robots[r, 1]) <= reach_m:
+                near = True
+                break
+        if not near:
+            continue
+        col = math.floor((x - lower_x) / resolution_m)
+        row = math.floor((y - lower_y) / resolution_m)
+        if 0 <= row < h and 0 <= col < w and obstacle[row, col]:
+            out[n, 0] = x
+            out[n, 1] = y
+            out[n, 2] = a[2] + t * (b[2] - a[2])
+            n += 1
+    return out[:n]

@@ -54,8 +54,9 @@ class CoverageModel:
     covered: np.ndarray  # (H, W)
     opaque: np.ndarray  # (H, W)
 
-    def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
-        """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range."""
+    def _open_cells(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns (repeated) of the cells that rays from (x, y) within ±50° of
+        ``yaw`` reach, up to the view range or the first opaque cell or the map's edge."""
         res = self.space.resolution_m
         angles = yaw + np.linspace(-_WEDGE_RAD, _WEDGE_RAD, 101)
         steps = np.arange(0.3, _VIEW_RANGE_M, res / 2)
@@ -68,12 +69,21 @@ class CoverageModel:
         rows_c, cols_c = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
         blocked = ~inside | self.opaque[rows_c, cols_c]
         open_ray = np.cumsum(blocked, axis=1) == 0
+        return rows_c[open_ray], cols_c[open_ray]
+
+    def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
+        """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range."""
         seen = np.zeros_like(self.opaque)
-        seen[rows_c[open_ray], cols_c[open_ray]] = True
+        seen[self._open_cells(x, y, yaw)] = True
         return seen & self.target
 
     def gain(self, pose: np.ndarray) -> int:
-        return int(np.count_nonzero(self.visible(*pose) & ~self.covered))
+        """How many cells worth covering and not covered yet a scan from ``pose`` would see
+        (counted on the cells the rays reach, not over the whole map)."""
+        rows, cols = self._open_cells(*pose)
+        w = self.opaque.shape[1]
+        rows, cols = np.divmod(np.unique(rows * w + cols), w)
+        return int(np.count_nonzero(self.target[rows, cols] & ~self.covered[rows, cols]))
 
     def add(self, pose: np.ndarray) -> None:
         self.covered |= self.visible(*pose)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from estimation.app.mission.view import MapView
+from estimation.app.mission.view import MapView, _over_obstacles
 from mapping.grid import GridParams, OccupancyGrid
 from tests.estimation.app.mission.conftest import (
     BODY_AT,
@@ -173,3 +173,37 @@ def test_where_a_robot_found_its_way_blocked_no_path_is_planned_again() -> None:
     same = MapView(grid, CONFIG, np.array(robots),
                    blocked_xy=np.array([[-40.0, 2.0], [math.nan, 1.0]]))  # fmt: skip
     np.testing.assert_array_equal(same.space.free, open_view.space.free)
+
+
+def over_obstacles_reference(
+    a: np.ndarray, b: np.ndarray, steps: int, robots: np.ndarray, reach_m: float,
+    obstacle: np.ndarray, lower_xy: np.ndarray, res: float,
+) -> np.ndarray:  # fmt: skip
+    """The points along a segment near a robot and over an obstacle, with numpy."""
+    points = a + np.linspace(0.0, 1.0, steps)[:, None] * (b - a)
+    gap = points[:, None, :2] - robots[None, :, :]
+    points = points[(np.hypot(gap[..., 0], gap[..., 1]) <= reach_m).any(axis=1)]
+    cols = np.floor((points[:, 0] - lower_xy[0]) / res).astype(np.int64)
+    rows = np.floor((points[:, 1] - lower_xy[1]) / res).astype(np.int64)
+    h, w = obstacle.shape
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    under = np.zeros(len(points), dtype=bool)
+    under[inside] = obstacle[rows[inside], cols[inside]]
+    return np.asarray(points[under])
+
+
+def test_points_over_obstacles_near_robots_are_those_numpy_finds() -> None:
+    rng = np.random.default_rng(7)
+    obstacle = rng.random((40, 60)) < 0.3
+    lower = np.array([-1.0, -0.5])
+    found = 0
+    for n in range(300):
+        a = rng.uniform((-2, -1, 0), (7, 4.5, 2))
+        b = rng.uniform((-2, -1, 0), (7, 4.5, 2))
+        robots = rng.uniform((-1, -0.5), (5, 3.5), size=(n % 4, 2))
+        steps = int(rng.integers(2, 90))
+        got = _over_obstacles(a, b, steps, robots, 0.6, obstacle, lower[0], lower[1], 0.1)
+        want = over_obstacles_reference(a, b, steps, robots, 0.6, obstacle, lower, 0.1)
+        np.testing.assert_array_equal(got, want)
+        found += len(got)
+    assert found > 100
