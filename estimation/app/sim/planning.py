@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numba import njit
 
 from estimation.app.config import Config
 from sensors.errors import SensorError
@@ -54,14 +55,17 @@ class CoverageModel:
     covered: np.ndarray  # (H, W)
     opaque: np.ndarray  # (H, W)
 
-    def _open_cells(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-        """Rows and columns (repeated) of the cells that rays from (x, y) within ±50° of
-        ``yaw`` reach, up to the view range or the first opaque cell or the map's edge."""
-        res = self.space.resolution_m
+    def _rays(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+        """The sample points of rays from (x, y) within ±50° of ``yaw`` up to the view range."""
         angles = yaw + np.linspace(-_WEDGE_RAD, _WEDGE_RAD, 101)
-        steps = np.arange(0.3, _VIEW_RANGE_M, res / 2)
-        px = x + np.outer(np.cos(angles), steps)
-        py = y + np.outer(np.sin(angles), steps)
+        steps = np.arange(0.3, _VIEW_RANGE_M, self.space.resolution_m / 2)
+        return x + np.outer(np.cos(angles), steps), y + np.outer(np.sin(angles), steps)
+
+    def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
+        """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range: each ray up to
+        its first opaque cell or the map's edge."""
+        res = self.space.resolution_m
+        px, py = self._rays(x, y, yaw)
         cols = np.floor((px - self.space.lower_xy[0]) / res).astype(int)
         rows = np.floor((py - self.space.lower_xy[1]) / res).astype(int)
         h, w = self.opaque.shape
@@ -69,21 +73,16 @@ class CoverageModel:
         rows_c, cols_c = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
         blocked = ~inside | self.opaque[rows_c, cols_c]
         open_ray = np.cumsum(blocked, axis=1) == 0
-        return rows_c[open_ray], cols_c[open_ray]
-
-    def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
-        """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range."""
         seen = np.zeros_like(self.opaque)
-        seen[self._open_cells(x, y, yaw)] = True
+        seen[rows_c[open_ray], cols_c[open_ray]] = True
         return seen & self.target
 
     def gain(self, pose: np.ndarray) -> int:
-        """How many cells worth covering and not covered yet a scan from ``pose`` would see
-        (counted on the cells the rays reach, not over the whole map)."""
-        rows, cols = self._open_cells(*pose)
-        w = self.opaque.shape[1]
-        rows, cols = np.divmod(np.unique(rows * w + cols), w)
-        return int(np.count_nonzero(self.target[rows, cols] & ~self.covered[rows, cols]))
+        """How many cells worth covering and not covered yet a scan from ``pose`` would see:
+        ``visible``'s cells, walked ray by ray without building the map-sized arrays."""
+        px, py = self._rays(*pose)
+        return _gain(px, py, float(self.space.lower_xy[0]), float(self.space.lower_xy[1]),
+                     self.space.resolution_m, self.opaque, self.target, self.covered)  # fmt: skip
 
     def add(self, pose: np.ndarray) -> None:
         self.covered |= self.visible(*pose)
@@ -465,3 +464,26 @@ def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverag
         if gain > best_gain:
             best, best_gain = float(heading), gain
     return best
+
+
+@njit(cache=True)
+def _gain(
+    px: np.ndarray, py: np.ndarray, lower_x: float, lower_y: float, res: float,
+    opaque: np.ndarray, target: np.ndarray, covered: np.ndarray,
+) -> int:  # fmt: skip
+    """Cells worth covering, not covered, that the rays (rows of sample points ``px``, ``py``)
+    reach before their first opaque cell or the map's edge; each cell counted once."""
+    h, w = opaque.shape
+    seen = np.zeros((h, w), dtype=np.bool_)
+    count = 0
+    for i in range(px.shape[0]):
+        for j in range(px.shape[1]):
+            col = math.floor((px[i, j] - lower_x) / res)
+            row = math.floor((py[i, j] - lower_y) / res)
+            if not (0 <= row < h and 0 <= col < w) or opaque[row, col]:
+                break
+            if not seen[row, col]:
+                seen[row, col] = True
+                if target[row, col] and not covered[row, col]:
+                    count += 1
+    return count
