@@ -1,5 +1,15 @@
 """The global grid as the mission loop estimates it: the sweeps fused at their estimated poses,
-fused again from scratch when an estimate it rests on moved."""
+fused again when an estimate they rest on moved.
+
+The sweeps are fused in the order they came, each at the pose it had then. A settled base
+grid holds all but the latest sweeps (at most twice ``window``); the map is a copy of the base
+with the latest fused on top. When an estimate moves, it is nearly always a recent sweep's
+(the mutual observation or the station link of the station being mapped): then only the
+sweeps after the base are fused again, on a fresh copy of it. Only when a settled sweep moved
+(a loop closure) is everything fused again from scratch. Either way, the map is exactly the
+sweeps fused one after the other, each within ``_REFUSE_M`` and ``_REFUSE_RAD`` of its
+estimate.
+"""
 
 from __future__ import annotations
 
@@ -20,40 +30,77 @@ __all__ = ["EstimatedMap"]
 
 #: A fused sweep whose pose estimate moved more than this (m, rad) gets the map re-fused.
 _REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
+#: Sweeps kept out of the base: a move among them re-fuses these alone.
+WINDOW = 64
 
 
 class EstimatedMap:
     """The global grid as the loop estimates it, from the sweeps at their estimated poses."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, window: int = WINDOW) -> None:
+        if window < 1:
+            raise ValueError(f"EstimatedMap: window must be at least 1, got {window}")
         self.params = GridParams(**config.grid.model_dump())
         self.mount = T_robot_scanner(config)
-        self.grid = OccupancyGrid(self.params)
+        self.window = window
+        self.base = OccupancyGrid(self.params)  # the first ``settled`` sweeps of ``order``
+        self.grid = OccupancyGrid(self.params)  # every sweep of ``order``
+        self.order: list[Sweep] = []  # the sweeps fused, in the order they were
+        self.settled = 0
         self.fused: dict[int, np.ndarray] = {}  # id(sweep) → the pose it was fused at
-        self.refusions = 0
+        self.refusions = 0  # times the map was fused again, from the base or from scratch
+        self.from_scratch = 0
 
     def update(self, sweeps: list[Sweep], estimate: dict[int, np.ndarray]) -> None:
         usable = [s for s in sweeps if pose_key(s.robot, s.index) in estimate]
-        moved = any(
-            id(s) in self.fused and _moved(self.fused[id(s)], estimate[pose_key(s.robot, s.index)])
-            for s in usable
+        ids = {id(s) for s in usable}
+        stale = next(
+            (
+                n
+                for n, s in enumerate(self.order)
+                if id(s) not in ids or _moved(self.fused[id(s)], _pose(s, estimate))
+            ),
+            None,
         )
-        if moved:
-            self.grid = OccupancyGrid(self.params)
-            self.fused = {}
-            self.refusions += 1
         new = [s for s in usable if id(s) not in self.fused]
-        if not new:
+        if stale is None:
+            self._fuse(self.grid, new, [_pose(s, estimate) for s in new])
+            self.order += new
+        else:
+            self.refusions += 1
+            if stale < self.settled:  # a settled sweep moved: start again
+                self.from_scratch += 1
+                self.base, self.settled = OccupancyGrid(self.params), 0
+            recent = [s for s in self.order[self.settled :] if id(s) in ids] + new
+            for sweep in self.order[self.settled :]:
+                del self.fused[id(sweep)]
+            self.order = self.order[: self.settled] + recent
+            self.grid = self.base.copy() if self.settled else OccupancyGrid(self.params)
+            self._fuse(self.grid, recent, [_pose(s, estimate) for s in recent])
+        if len(self.order) - self.settled > 2 * self.window:
+            # The older half of the recent sweeps settles into the base, at the poses the
+            # map holds them at: base + the rest is still the map.
+            upto = len(self.order) - self.window
+            settling = self.order[self.settled : upto]
+            self._fuse(self.base, settling, [self.fused[id(s)] for s in settling])
+            self.settled = upto
+
+    def _fuse(self, grid: OccupancyGrid, sweeps: list[Sweep], poses: list[np.ndarray]) -> None:
+        if not sweeps:
             return
-        poses = [estimate[pose_key(s.robot, s.index)] for s in new]
         fuse_scans(
-            [MapScan(s.scan.points_scanner) for s in new],
+            [MapScan(s.scan.points_scanner) for s in sweeps],
             np.stack([pose2_matrix(*p) @ self.mount for p in poses]),
             self.params,
-            self.grid,
+            grid,
         )
-        for sweep, pose in zip(new, poses, strict=True):
-            self.fused[id(sweep)] = pose.copy()
+        if grid is self.grid:
+            for sweep, pose in zip(sweeps, poses, strict=True):
+                self.fused[id(sweep)] = np.array(pose, dtype=float)
+
+
+def _pose(sweep: Sweep, estimate: dict[int, np.ndarray]) -> np.ndarray:
+    return estimate[pose_key(sweep.robot, sweep.index)]
 
 
 def _moved(a: np.ndarray, b: np.ndarray) -> bool:

@@ -551,6 +551,7 @@ class MissionLoop:
             "dwells": self._dwells,
             **self.clock.summary(),
             "map_refusions": self.map.refusions,
+            "map_refusions_from_scratch": self.map.from_scratch,
             "concurrent_localization": localizations,
             "retried_observations": self.retries,
             "unobserved_scans": self.unobserved,
