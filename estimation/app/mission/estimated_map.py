@@ -31,7 +31,7 @@ __all__ = ["EstimatedMap"]
 #: A fused sweep whose pose estimate moved more than this (m, rad) gets the map re-fused.
 _REFUSE_M, _REFUSE_RAD = 0.03, math.radians(0.5)
 #: Sweeps kept out of the base: a move among them re-fuses these alone.
-WINDOW = 64
+WINDOW = 32
 
 
 class EstimatedMap:

@@ -200,7 +200,9 @@ class MissionLoop:
         dwell's reference and mapper gave an accepted mutual observation."""
         self.clock.done()
         self.fleet.dwell(**fields)
-        self.clock.start()
+        self.clock.start(
+            f"{self._dwells} (station {len(self.trace)}, {fields.get('phase', 'map')})"
+        )
         before = self._mutual_factors()
         self._sync()
         self._dwells += 1

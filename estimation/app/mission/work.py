@@ -14,6 +14,8 @@ __all__ = ["PARTS", "WorkClock"]
 #: The parts of a dwell's work: decoding and beacon detection into events, the iSAM2 update
 #: with the estimate, fusing the sweeps at the estimate, and the rest, mostly choosing the goal.
 PARTS = ("events", "isam2", "fusion", "goal")
+#: How many of the slowest dwells the report lists with their parts.
+SLOWEST = 5
 
 
 class WorkClock:
@@ -24,19 +26,22 @@ class WorkClock:
         self.work_s: list[float] = []
         self.parts: list[dict[str, float]] = []
         self.waited_s: list[float] = []
+        self.labels: list[str] = []  # per dwell: which dwell it was
         self._since: float | None = None
         self._excluded = 0.0  # all time excluded so far
         self._part = dict.fromkeys(PARTS, 0.0)
+        self._label = ""
 
     @property
     def running(self) -> bool:
         """Whether a dwell's work is being timed."""
         return self._since is not None
 
-    def start(self) -> None:
-        """A dwell has ended: its work begins."""
+    def start(self, label: str = "") -> None:
+        """A dwell (``label``: which) has ended: its work begins."""
         self._since = time.perf_counter()
         self._part = dict.fromkeys(PARTS, 0.0)
+        self._label = label
 
     def exclude(self, seconds: float, waited: bool = False) -> None:
         """Time that is not the dwell's work (a wait on the worker when ``waited``)."""
@@ -65,11 +70,12 @@ class WorkClock:
             self._part["goal"] = max(0.0, work - sum(self._part.values()))
             self.work_s.append(work)
             self.parts.append(self._part)
+            self.labels.append(self._label)
             self._since = None
 
     def summary(self) -> dict[str, Any]:
         """``report.json``'s figures: work per dwell (median, p99, max), each part's median,
-        p99 and max, the parts of the slowest dwell, and the waits."""
+        p99 and max, the parts of the slowest dwells, and the waits."""
         work = np.array(self.work_s) if self.work_s else np.zeros(1)
         parts: dict[str, Any] = {}
         for name in PARTS:
@@ -79,6 +85,11 @@ class WorkClock:
             slowest = int(np.argmax(work))
             shares = {k: round(v, 4) for k, v in self.parts[slowest].items()}
             parts["slowest_dwell"] = {"work": float(work[slowest]), **shares}
+            parts["slowest_dwells"] = [
+                {"dwell": self.labels[i], "work": round(float(work[i]), 4),
+                 **{k: round(v, 4) for k, v in self.parts[i].items()}}
+                for i in np.argsort(-work, kind="stable")[:SLOWEST]
+            ]  # fmt: skip
         waits = {"count": len(self.waited_s), "total": float(sum(self.waited_s)),
                  "max": float(max(self.waited_s, default=0.0))}  # fmt: skip
         return {"work_per_dwell_s": _spread(work), "work_parts_s": parts,

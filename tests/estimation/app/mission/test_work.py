@@ -6,7 +6,8 @@ import time
 
 import pytest
 
-from estimation.app.mission.work import PARTS, WorkClock
+from estimation.app.mission import work
+from estimation.app.mission.work import PARTS, SLOWEST, WorkClock
 
 
 def test_work_is_timed_from_a_dwells_end_to_the_next_command_without_the_waits() -> None:
@@ -15,7 +16,7 @@ def test_work_is_timed_from_a_dwells_end_to_the_next_command_without_the_waits()
     assert clock.work_s == []
     assert not clock.running
     began_all = time.perf_counter()
-    clock.start()
+    clock.start("dwell 1")
     mark = clock.mark()
     time.sleep(0.02)
     mark = clock.part("events", mark)
@@ -41,7 +42,24 @@ def test_work_is_timed_from_a_dwells_end_to_the_next_command_without_the_waits()
     assert waits["count"] == 1
     assert waits["total"] == waits["max"] == waited
     assert summary["work_parts_s"]["slowest_dwell"]["work"] == work
-    assert set(summary["work_parts_s"]) == {*PARTS, "slowest_dwell"}
+    assert set(summary["work_parts_s"]) == {*PARTS, "slowest_dwell", "slowest_dwells"}
+    (listed,) = summary["work_parts_s"]["slowest_dwells"]
+    assert listed["dwell"] == "dwell 1"
+    assert listed["work"] == pytest.approx(work, abs=1e-4)
+
+
+def test_the_slowest_dwells_are_listed_slowest_first(monkeypatch: pytest.MonkeyPatch) -> None:
+    now = [0.0]
+    monkeypatch.setattr(work.time, "perf_counter", lambda: now[0])
+    clock = WorkClock()
+    for n, seconds in enumerate((0.1, 3.0, 0.2, 1.0, 0.0, 2.0, 0.3)):
+        clock.start(f"dwell {n}")
+        now[0] += seconds
+        clock.done()
+    listed = clock.summary()["work_parts_s"]["slowest_dwells"]
+    assert [d["dwell"] for d in listed] == ["dwell 1", "dwell 5", "dwell 3", "dwell 6", "dwell 2"]
+    assert [d["work"] for d in listed] == pytest.approx([3.0, 2.0, 1.0, 0.3, 0.2])
+    assert len(listed) == SLOWEST
 
 
 def test_time_outside_a_dwells_work_counts_nowhere() -> None:
@@ -53,3 +71,4 @@ def test_time_outside_a_dwells_work_counts_nowhere() -> None:
     assert summary["localization_waits_s"]["count"] == 0
     assert summary["work_per_dwell_s"] == {"median": 0.0, "p99": 0.0, "max": 0.0}
     assert "slowest_dwell" not in summary["work_parts_s"]
+    assert "slowest_dwells" not in summary["work_parts_s"]
