@@ -43,6 +43,8 @@ _ROOM_LEVEL_M, _ROOM_PERSISTENCE_M, _ROOM_M2 = 0.9, 0.2, 2.0
 _BLOCKED_M = 0.1
 #: Unknown floor added around the known map, m.
 _BORDER_M = 1.0
+#: Path-distance fields a view keeps (about 1 MB each on a 40 m × 30 m floor).
+_KEPT_DISTANCES = 16
 
 
 class MapView:
@@ -97,6 +99,7 @@ class MapView:
         )
         self.geometry = BeaconGeometry(config, line_clear=self._clear)
         self._graph: tuple[object, np.ndarray] | None = None
+        self._distances: dict[tuple[int, ...], np.ndarray] = {}
         self._rooms: list[Room] | None = None
 
     def rooms(self) -> list[Room]:
@@ -160,20 +163,26 @@ class MapView:
 
     def distances_from(self, sources_xy: list[np.ndarray]) -> np.ndarray:
         """Shortest-path distance (m) through the drivable space from the nearest of
-        ``sources_xy`` to every cell (inf where unreachable)."""
+        ``sources_xy`` to every cell (inf where unreachable); read-only. The last few are kept:
+        a turn's pivots and each heading's candidates ask from the same place again."""
         from scipy.sparse.csgraph import dijkstra
 
         if self._graph is None:
             self._graph = grid_graph(self.space.free, self.space.resolution_m)
         graph, index = self._graph
+        nodes = tuple(sorted({int(index[self.space.cell(p)]) for p in sources_xy
+                              if self.space.is_free(p)}))  # fmt: skip
+        if nodes in self._distances:
+            return self._distances[nodes]
         out = np.full(self.space.free.shape, np.inf)
-        nodes = sorted({int(index[self.space.cell(p)]) for p in sources_xy
-                        if self.space.is_free(p)})  # fmt: skip
-        if not nodes:
-            return out
-        distance = dijkstra(graph, directed=False, indices=nodes, min_only=True)
-        cells = np.argwhere(index >= 0)
-        out[cells[:, 0], cells[:, 1]] = distance
+        if nodes:
+            distance = dijkstra(graph, directed=False, indices=list(nodes), min_only=True)
+            cells = np.argwhere(index >= 0)
+            out[cells[:, 0], cells[:, 1]] = distance
+        out.flags.writeable = False
+        if len(self._distances) >= _KEPT_DISTANCES:
+            del self._distances[next(iter(self._distances))]
+        self._distances[nodes] = out
         return out
 
     def at(self, field_: np.ndarray, xy: np.ndarray) -> float:

@@ -207,3 +207,16 @@ def test_points_over_obstacles_near_robots_are_those_numpy_finds() -> None:
         np.testing.assert_array_equal(got, want)
         found += len(got)
     assert found > 100
+
+
+def test_path_distances_from_the_same_cells_are_computed_once(view: MapView) -> None:
+    here = np.array(BODY_AT)
+    first = view.distances_from([here])
+    assert view.distances_from([here + 0.01]) is first  # the same cell
+    other = view.distances_from([here, np.array(UNSEEN_AT)])
+    assert other is not first
+    assert np.all(other <= first)  # from the nearer of two sources
+    with pytest.raises(ValueError, match="read-only"):
+        first[0, 0] = 0.0
+    nowhere = view.distances_from([np.array([1e3, 1e3])])
+    assert np.isinf(nowhere).all()
