@@ -45,6 +45,7 @@ from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.mission.turns import RETRIES, fly_turn
 from estimation.app.mission.view import MapView
+from estimation.app.mission.warm import warm_up
 from estimation.app.mission.work import WorkClock
 from estimation.app.pipeline import finish_isam, isam_options, prepare
 from estimation.app.results import BatchOutput
@@ -294,6 +295,7 @@ class MissionLoop:
 
     def run(self) -> str:
         """Fly the mission's plan (explicit steps, or exploration); returns why it stopped."""
+        self.warm_up_s = warm_up(self.config)
         try:
             if isinstance(self.mission.plan, list):
                 reason = self._scripted(self.mission.plan)
@@ -552,6 +554,7 @@ class MissionLoop:
             "changed": self.changed,
             "dwells": self._dwells,
             **self.clock.summary(),
+            "warm_up_s": round(getattr(self, "warm_up_s", 0.0), 3),
             "map_refusions": self.map.refusions,
             "map_refusions_from_scratch": self.map.from_scratch,
             "concurrent_localization": localizations,

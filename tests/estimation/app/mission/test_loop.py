@@ -97,6 +97,7 @@ def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) 
     assert 0 < loop["work_per_dwell_s"]["median"] <= loop["work_per_dwell_s"]["p99"] < 5.0
     waits = loop["localization_waits_s"]
     assert 0 <= waits["max"] <= waits["total"]
+    assert 0 < loop["warm_up_s"] < 120
     parts = loop["work_parts_s"]
     slowest = parts["slowest_dwell"]
     assert slowest["work"] == pytest.approx(loop["work_per_dwell_s"]["max"])
