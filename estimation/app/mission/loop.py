@@ -160,6 +160,7 @@ class MissionLoop:
     # -- what the robots recorded -------------------------------------------------------------
 
     def _sync(self) -> None:
+        clock = self.clock.mark()
         got = self.fleet.receive()
         for robot in self.robots:
             decoder, writer = self.decoders[robot], self.writers[robot]
@@ -176,7 +177,6 @@ class MissionLoop:
         for entry in got.events:
             if entry["event"] == "move":
                 self.index[entry["robot"]] = int(entry["to_index"])
-        clock = self.clock.mark()
         streams = {r: d.stream() for r, d in self.decoders.items()}
         new = []
         for number in range(self._fed, len(self.entries)):
@@ -295,7 +295,12 @@ class MissionLoop:
 
     def run(self) -> str:
         """Fly the mission's plan (explicit steps, or exploration); returns why it stopped."""
-        self.warm_up_s = warm_up(self.config)
+        r = self.robots[0]
+        limits = scan_limits(self.config)
+        throwaway = LmsDecoder(
+            self.config.scanner.measuring_mode, limits, self.fleet.capture_header(r)
+        )
+        self.warm_up_s = warm_up(self.config, throwaway)
         try:
             if isinstance(self.mission.plan, list):
                 reason = self._scripted(self.mission.plan)

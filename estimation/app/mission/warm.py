@@ -1,9 +1,10 @@
 """Compiling the mission loop's kernels before the mission starts.
 
 numba compiles a kernel the first time it runs (and caches it on disk for the next process).
-Without a cache, the loop's first dwell compiled the fusion and the planner's kernels: 39 s of
-work on the 2-core machine (generated building 5), all before the robots' first command. The
-loop runs them once on a small room of its own before the first dwell instead.
+Without a cache, the loop's first dwell compiled the LMS decoding, the fusion and the
+planner's kernels: 39 s of work on the 2-core machine (generated building 5), all before the
+robots' first command. The loop runs them once on a few telegrams and a small room of its own
+before the first dwell instead.
 """
 
 from __future__ import annotations
@@ -14,9 +15,11 @@ import time
 import numpy as np
 
 from estimation.app.config import Config
+from estimation.app.dataset import LmsDecoder
 from estimation.app.mission.view import MapView
 from mapping.fusion import Scan, fuse_scans
 from mapping.grid import GridParams
+from sensors.lms200.protocol.scan import encode_scan
 
 __all__ = ["warm_up"]
 
@@ -24,10 +27,20 @@ _ROOM = np.array([4.0, 3.0, 2.5])
 _AT = np.array([2.0, 1.5, 0.4])
 
 
-def warm_up(config: Config) -> float:
-    """Run the estimated map's fusion and the planner's kernels once on a room seen from its
-    middle; returns the seconds it took."""
+def warm_up(config: Config, decoder: LmsDecoder | None = None) -> float:
+    """Run the LMS decoding (``decoder``: a throwaway one set up as the robots' are), the
+    estimated map's fusion and the planner's kernels once, on a few telegrams and a room seen
+    from its middle; returns the seconds it took."""
     began = time.perf_counter()
+    if decoder is not None:
+        scanner = config.scanner
+        count = round(scanner.field_of_view_deg / scanner.angular_resolution_deg) + 1
+        ranges = np.full(count, 2.0)
+        decoder.feed_chunks([
+            (0.01 * n, encode_scan(ranges, measuring_mode=scanner.measuring_mode,
+                                   scan_index=n, telegram_index=n))
+            for n in range(4)
+        ])  # fmt: skip
     params = GridParams(**config.grid.model_dump())
     pose = np.eye(4)
     pose[:3, 3] = _AT

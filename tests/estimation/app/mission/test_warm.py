@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from estimation.app.config import Config
+from estimation.app.dataset import LmsDecoder
+from estimation.app.rig import scan_limits
 from estimation.app.mission.warm import _AT, _ROOM, _room_scan, warm_up
 
 
@@ -19,5 +21,9 @@ def test_the_room_scan_lies_on_the_rooms_walls() -> None:
 
 
 def test_warming_up_runs_and_is_quick_once_compiled() -> None:
-    warm_up(Config())
-    assert 0.0 < warm_up(Config()) < 5.0
+    config = Config()
+    warm_up(config)
+    assert 0.0 < warm_up(config) < 5.0
+    decoder = LmsDecoder(config.scanner.measuring_mode, scan_limits(config))
+    assert 0.0 < warm_up(config, decoder) < 5.0
+    assert decoder.decoded == 4  # the telegrams it was fed were decoded
