@@ -12,8 +12,8 @@ import numpy as np
 __all__ = ["PARTS", "WorkClock"]
 
 #: The parts of a dwell's work: receiving and decoding the recordings and detecting beacons
-#: into events, the iSAM2 update
-#: with the estimate, fusing the sweeps at the estimate, and the rest, mostly choosing the goal.
+#: into events, the iSAM2 update with the estimate, fusing the sweeps at the estimate, and the
+#: rest, mostly choosing the goal.
 PARTS = ("events", "isam2", "fusion", "goal")
 #: How many of the slowest dwells the report lists with their parts.
 SLOWEST = 5
