@@ -160,8 +160,10 @@ class MissionLoop:
     # -- what the robots recorded -------------------------------------------------------------
 
     def _sync(self) -> None:
-        clock = self.clock.mark()
+        began = time.perf_counter()
         got = self.fleet.receive()
+        self.clock.exclude(time.perf_counter() - began, received=True)
+        clock = self.clock.mark()
         for robot in self.robots:
             decoder, writer = self.decoders[robot], self.writers[robot]
             chunks = got.lms.get(robot, [])
@@ -295,12 +297,7 @@ class MissionLoop:
 
     def run(self) -> str:
         """Fly the mission's plan (explicit steps, or exploration); returns why it stopped."""
-        r = self.robots[0]
-        limits = scan_limits(self.config)
-        throwaway = LmsDecoder(
-            self.config.scanner.measuring_mode, limits, self.fleet.capture_header(r)
-        )
-        self.warm_up_s = warm_up(self.config, throwaway)
+        self.warm_up_s = warm_up(self.config, self.fleet.capture_header(self.robots[0]))
         try:
             if isinstance(self.mission.plan, list):
                 reason = self._scripted(self.mission.plan)

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 
 from estimation.app.config import Config
 from estimation.app.dataset import LmsDecoder
 from estimation.app.mission.view import MapView
+from estimation.app.rig import scan_limits
 from mapping.fusion import Scan, fuse_scans
 from mapping.grid import GridParams
 from sensors.lms200.protocol.scan import encode_scan
@@ -27,20 +29,19 @@ _ROOM = np.array([4.0, 3.0, 2.5])
 _AT = np.array([2.0, 1.5, 0.4])
 
 
-def warm_up(config: Config, decoder: LmsDecoder | None = None) -> float:
-    """Run the LMS decoding (``decoder``: a throwaway one set up as the robots' are), the
+def warm_up(config: Config, header: dict[str, Any] | None = None) -> float:
+    """Run the LMS decoding (set up as for a robot whose capture ``header`` is given), the
     estimated map's fusion and the planner's kernels once, on a few telegrams and a room seen
     from its middle; returns the seconds it took."""
     began = time.perf_counter()
-    if decoder is not None:
-        scanner = config.scanner
-        count = round(scanner.field_of_view_deg / scanner.angular_resolution_deg) + 1
-        ranges = np.full(count, 2.0)
-        decoder.feed_chunks([
-            (0.01 * n, encode_scan(ranges, measuring_mode=scanner.measuring_mode,
-                                   scan_index=n, telegram_index=n))
-            for n in range(4)
-        ])  # fmt: skip
+    decoder = LmsDecoder(config.scanner.measuring_mode, scan_limits(config), header)
+    scanner = config.scanner
+    ranges = np.full(round(scanner.field_of_view_deg / scanner.angular_resolution_deg) + 1, 2.0)
+    decoder.feed_chunks([
+        (0.01 * n, encode_scan(ranges, measuring_mode=scanner.measuring_mode, scan_index=n,
+                               telegram_index=n))
+        for n in range(4)
+    ])  # fmt: skip
     params = GridParams(**config.grid.model_dump())
     pose = np.eye(4)
     pose[:3, 3] = _AT

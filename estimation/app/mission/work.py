@@ -1,6 +1,8 @@
 """The mission loop's work per dwell: from the end of a dwell to the robots' next command, in
 parts (events, iSAM2, map fusion; the rest is choosing the goal), without the time spent
-waiting on the concurrent global localization, which runs during the robots' next sweep."""
+waiting on the concurrent global localization, which runs during the robots' next sweep, and
+without the time the robots' recordings take to reach the loop (over the network, or in a
+simulated mission the simulator making them)."""
 
 from __future__ import annotations
 
@@ -20,13 +22,14 @@ SLOWEST = 5
 
 
 class WorkClock:
-    """Times the loop's work per dwell (``work_s``), its parts (``parts``), and its waits on
-    the concurrent localization (``waited_s``, not work)."""
+    """Times the loop's work per dwell (``work_s``), its parts (``parts``), its waits on the
+    concurrent localization (``waited_s``) and on the recordings (``received_s``), not work."""
 
     def __init__(self) -> None:
         self.work_s: list[float] = []
         self.parts: list[dict[str, float]] = []
         self.waited_s: list[float] = []
+        self.received_s: list[float] = []
         self.labels: list[str] = []  # per dwell: which dwell it was
         self._since: float | None = None
         self._excluded = 0.0  # all time excluded so far
@@ -44,13 +47,16 @@ class WorkClock:
         self._part = dict.fromkeys(PARTS, 0.0)
         self._label = label
 
-    def exclude(self, seconds: float, waited: bool = False) -> None:
-        """Time that is not the dwell's work (a wait on the worker when ``waited``)."""
+    def exclude(self, seconds: float, waited: bool = False, received: bool = False) -> None:
+        """Time that is not the dwell's work: a wait on the worker (``waited``), the robots'
+        recordings reaching the loop (``received``), the live view."""
         if self._since is not None:
             self._since += seconds
             self._excluded += seconds
             if waited:
                 self.waited_s.append(seconds)
+            if received:
+                self.received_s.append(seconds)
 
     def mark(self) -> tuple[float, float]:
         """Now, for :meth:`part`."""
@@ -93,8 +99,9 @@ class WorkClock:
             ]  # fmt: skip
         waits = {"count": len(self.waited_s), "total": float(sum(self.waited_s)),
                  "max": float(max(self.waited_s, default=0.0))}  # fmt: skip
+        received = np.array(self.received_s) if self.received_s else np.zeros(1)
         return {"work_per_dwell_s": _spread(work), "work_parts_s": parts,
-                "localization_waits_s": waits}  # fmt: skip
+                "localization_waits_s": waits, "receive_s": _spread(received)}  # fmt: skip
 
 
 def _spread(values: np.ndarray) -> dict[str, float]:

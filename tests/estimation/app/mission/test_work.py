@@ -38,6 +38,7 @@ def test_work_is_timed_from_a_dwells_end_to_the_next_command_without_the_waits()
     assert sum(parts.values()) == pytest.approx(work)
     assert work == pytest.approx(elapsed - waited, abs=0.005)
     summary = clock.summary()
+    assert summary["receive_s"]["max"] == 0.0  # nothing received
     waits = summary["localization_waits_s"]
     assert waits["count"] == 1
     assert waits["total"] == waits["max"] == waited
@@ -66,9 +67,10 @@ def test_time_outside_a_dwells_work_counts_nowhere() -> None:
     clock = WorkClock()
     mark = clock.mark()
     clock.part("fusion", mark)
-    clock.exclude(3.0, waited=True)
+    clock.exclude(3.0, waited=True, received=True)
     summary = clock.summary()
     assert summary["localization_waits_s"]["count"] == 0
+    assert summary["receive_s"]["max"] == 0.0
     assert summary["work_per_dwell_s"] == {"median": 0.0, "p99": 0.0, "max": 0.0}
     assert "slowest_dwell" not in summary["work_parts_s"]
     assert "slowest_dwells" not in summary["work_parts_s"]
