@@ -63,6 +63,38 @@ def add_cells(
     return len(cells)
 
 
+@njit(cache=True, inline="always")
+def _lookup(
+    ix: int,
+    iy: int,
+    iz: int,
+    last_key: int,
+    blk: int,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    lut: np.ndarray,
+    bs: int,
+) -> tuple[float, int, int]:
+    """Log-odds of cell (ix, iy, iz), NaN where unknown, with its block's key and pool index
+    (−1: none): passed back in with ``last_key`` and ``blk``, the next cell of the same block
+    skips the hash table."""
+    bx, lx = split(ix, bs)
+    by, ly = split(iy, bs)
+    bz, lz = split(iz, bs)
+    key = pack_block(bx, by, bz)
+    if key != last_key:
+        blk = find_block(table_keys, table_vals, shift, bx, by, bz)
+    value = np.nan
+    if blk >= 0:
+        flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
+        if (known[blk, flat >> 3] >> (flat & 7)) & 1:
+            value = np.float64(logodds[blk, flat])
+    return value, key, blk
+
+
 @njit(cache=True)
 def lookup_cells(
     cells: np.ndarray,
@@ -80,17 +112,9 @@ def lookup_cells(
     last_key = EMPTY_KEY
     blk = -1
     for n in range(n_cells):
-        bx, lx = split(cells[n, 0], bs)
-        by, ly = split(cells[n, 1], bs)
-        bz, lz = split(cells[n, 2], bs)
-        key = pack_block(bx, by, bz)
-        if key != last_key:
-            blk = find_block(table_keys, table_vals, shift, bx, by, bz)
-            last_key = key
-        if blk >= 0:
-            flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
-            if (known[blk, flat >> 3] >> (flat & 7)) & 1:
-                values[n] = logodds[blk, flat]
+        values[n], last_key, blk = _lookup(cells[n, 0], cells[n, 1], cells[n, 2], last_key, blk,
+                                           table_keys, table_vals, shift, logodds, known, lut,
+                                           bs)  # fmt: skip
     return values
 
 
@@ -271,17 +295,12 @@ def segment_blocked(
                     break
             if near:
                 continue
-        bx, lx = split(cells[n, 0], bs)
-        by, ly = split(cells[n, 1], bs)
-        bz, lz = split(cells[n, 2], bs)
-        key = pack_block(bx, by, bz)
-        if key != last_key:
-            blk = find_block(table_keys, table_vals, shift, bx, by, bz)
-            last_key = key
-        flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
-        if blk < 0 or not (known[blk, flat >> 3] >> (flat & 7)) & 1:
+        value, last_key, blk = _lookup(cells[n, 0], cells[n, 1], cells[n, 2], last_key, blk,
+                                       table_keys, table_vals, shift, logodds, known, lut,
+                                       bs)  # fmt: skip
+        if math.isnan(value):
             if unknown_blocks:
                 return True
-        elif logodds[blk, flat] > threshold:
+        elif value > threshold:
             return True
     return False
