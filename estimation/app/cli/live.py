@@ -158,6 +158,9 @@ def base(
     with live_view(view, view_host, view_port) as foxglove:
         observe = None if foxglove is None else foxglove.publish_loop
         result = run_base(options, say=_say, observe=observe)
+        if foxglove is not None:  # the final state, for a viewer still watching
+            for note in foxglove.publish_result(out / "result", dataset_dir=out):
+                _say(f"live view note: {note}")
     print_live(result.loop, out)
 
 

@@ -131,10 +131,11 @@ class LiveView:
         server, self._server = self._server, None
         if server is None:
             return
-        server.stop()
+        # Clients that subscribed before the end get the latest state before the server stops.
         self._requests.put(None)
         if self._resender is not None:
             self._resender.join()
+        server.stop()
         with self._lock:
             for channel in self._channels.values():
                 channel.close()

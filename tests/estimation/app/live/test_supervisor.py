@@ -303,13 +303,15 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
 
 
 def _foxglove(port: int) -> Any:
-    """A Foxglove WebSocket client of the base's live view, once it listens."""
+    """A Foxglove WebSocket client of the base's live view, once it listens. The base flies
+    its mission meanwhile, two robot processes beside it, so the first map may take a while
+    on a loaded machine: the client waits up to a minute for it, not the view tests' 10 s."""
     from tests.estimation.app.ros.test_live_view import FoxgloveClient
 
     deadline = time.monotonic() + 60.0
     while True:
         try:
-            return FoxgloveClient(port)
+            return FoxgloveClient(port, timeout_s=60.0)
         except OSError:
             assert time.monotonic() < deadline, "the live view never listened"
             time.sleep(0.2)

@@ -51,8 +51,8 @@ class FoxgloveClient:
     ``foxglove.sdk.v1`` subprotocol, masked text frames out, frames in (text: JSON operations;
     binary opcode 0x01: subscription id, log time, message bytes)."""
 
-    def __init__(self, port: int) -> None:
-        self.deadline = time.monotonic() + TIMEOUT_S
+    def __init__(self, port: int, timeout_s: float = TIMEOUT_S) -> None:
+        self.deadline = time.monotonic() + timeout_s
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S)
         key = base64.b64encode(os.urandom(16)).decode()
         self.sock.sendall(
