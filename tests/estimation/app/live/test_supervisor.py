@@ -268,9 +268,7 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
         first.send_signal(signal.SIGINT)
         _, stderr = first.communicate(timeout=60)
     finally:
-        if first.poll() is None:
-            first.kill()
-            first.wait()
+        _stop(first)
     assert first.returncode == 130
     assert "the same command resumes the mission" in stderr
     assert "Traceback" not in stderr
@@ -280,7 +278,8 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     # resumed, and watched in Foxglove: the base serves its live view while it flies
     view_port = free_port()
     second = subprocess.Popen([*command, "--view", "--view-port", str(view_port)],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              preexec_fn=_sigint_default)  # fmt: skip
     try:
         client = _foxglove(view_port)
         try:
@@ -290,9 +289,7 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
             client.close()
         stdout, stderr = second.communicate(timeout=RUN_TIMEOUT_S)
     finally:
-        if second.poll() is None:
-            second.kill()
-            second.wait()
+        _stop(second)
     grid = typestore().deserialize_cdr(data, "nav_msgs/msg/OccupancyGrid")
     assert grid.info.width > 10
     assert second.returncode == 0, stderr[-2000:]
@@ -300,6 +297,21 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     clean, resumed = _poses(reference / "result"), _poses(out / "result")
     for robot in ("a", "b"):
         assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3
+
+
+def _stop(process: Any) -> None:
+    """Stop a ``coopmap live`` still running (a failed check): Ctrl-C, so that it stops its
+    base and robots too (killed, it would leave them running), and kill it only if it hangs."""
+    import subprocess
+
+    if process.poll() is not None:
+        return
+    process.send_signal(signal.SIGINT)
+    try:
+        process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
 
 
 def _foxglove(port: int) -> Any:
