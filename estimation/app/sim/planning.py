@@ -55,34 +55,27 @@ class CoverageModel:
     covered: np.ndarray  # (H, W)
     opaque: np.ndarray  # (H, W)
 
-    def _rays(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
-        """The sample points of rays from (x, y) within ±50° of ``yaw`` up to the view range."""
-        angles = yaw + np.linspace(-_WEDGE_RAD, _WEDGE_RAD, 101)
-        steps = np.arange(0.3, _VIEW_RANGE_M, self.space.resolution_m / 2)
-        return x + np.outer(np.cos(angles), steps), y + np.outer(np.sin(angles), steps)
-
     def visible(self, x: float, y: float, yaw: float) -> np.ndarray:
         """Cells seen from (x, y) within ±50° of ``yaw`` up to the view range: each ray up to
         its first opaque cell or the map's edge."""
-        res = self.space.resolution_m
-        px, py = self._rays(x, y, yaw)
-        cols = np.floor((px - self.space.lower_xy[0]) / res).astype(int)
-        rows = np.floor((py - self.space.lower_xy[1]) / res).astype(int)
-        h, w = self.opaque.shape
-        inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
-        rows_c, cols_c = np.clip(rows, 0, h - 1), np.clip(cols, 0, w - 1)
-        blocked = ~inside | self.opaque[rows_c, cols_c]
-        open_ray = np.cumsum(blocked, axis=1) == 0
         seen = np.zeros_like(self.opaque)
-        seen[rows_c[open_ray], cols_c[open_ray]] = True
+        self._walk(x, y, yaw, seen)
         return seen & self.target
 
     def gain(self, pose: np.ndarray) -> int:
-        """How many cells worth covering and not covered yet a scan from ``pose`` would see:
-        ``visible``'s cells, walked ray by ray without building the map-sized arrays."""
-        px, py = self._rays(*pose)
-        return _gain(px, py, float(self.space.lower_xy[0]), float(self.space.lower_xy[1]),
-                     self.space.resolution_m, self.opaque, self.target, self.covered)  # fmt: skip
+        """How many cells worth covering and not covered yet a scan from ``pose`` would see."""
+        x, y, yaw = (float(v) for v in pose[:3])
+        return self._walk(x, y, yaw, np.zeros_like(self.opaque))
+
+    def _walk(self, x: float, y: float, yaw: float, seen: np.ndarray) -> int:
+        """Mark in ``seen`` the cells the rays reach; returns how many of them are worth
+        covering and not covered yet."""
+        angles = yaw + np.linspace(-_WEDGE_RAD, _WEDGE_RAD, 101)
+        steps = np.arange(0.3, _VIEW_RANGE_M, self.space.resolution_m / 2)
+        px, py = x + np.outer(np.cos(angles), steps), y + np.outer(np.sin(angles), steps)
+        return int(_walk_rays(px, py, float(self.space.lower_xy[0]),
+                              float(self.space.lower_xy[1]), self.space.resolution_m,
+                              self.opaque, self.target, self.covered, seen))  # fmt: skip
 
     def add(self, pose: np.ndarray) -> None:
         self.covered |= self.visible(*pose)
@@ -467,14 +460,14 @@ def _best_heading(ref: np.ndarray, mapper: np.ndarray, space: FreeSpace, coverag
 
 
 @njit(cache=True)
-def _gain(
+def _walk_rays(
     px: np.ndarray, py: np.ndarray, lower_x: float, lower_y: float, res: float,
-    opaque: np.ndarray, target: np.ndarray, covered: np.ndarray,
+    opaque: np.ndarray, target: np.ndarray, covered: np.ndarray, seen: np.ndarray,
 ) -> int:  # fmt: skip
-    """Cells worth covering, not covered, that the rays (rows of sample points ``px``, ``py``)
-    reach before their first opaque cell or the map's edge; each cell counted once."""
+    """Mark in ``seen`` the cells that the rays (rows of sample points ``px``, ``py``) reach
+    before their first opaque cell or the map's edge; returns how many of the cells newly
+    marked are worth covering (``target``) and not ``covered``."""
     h, w = opaque.shape
-    seen = np.zeros((h, w), dtype=np.bool_)
     count = 0
     for i in range(px.shape[0]):
         for j in range(px.shape[1]):
