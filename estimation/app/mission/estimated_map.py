@@ -64,19 +64,27 @@ class EstimatedMap:
         )
         new = [s for s in usable if id(s) not in self.fused]
         if stale is None:
-            self._fuse(self.grid, new, [_pose(s, estimate) for s in new])
-            self.order += new
+            recent = new
         else:
             self.refusions += 1
             if stale < self.settled:  # a settled sweep moved: start again
                 self.from_scratch += 1
-                self.base, self.settled = OccupancyGrid(self.params), 0
-            recent = [s for s in self.order[self.settled :] if id(s) in ids] + new
-            for sweep in self.order[self.settled :]:
-                del self.fused[id(sweep)]
-            self.order = self.order[: self.settled] + recent
+                every = [s for s in self.order if id(s) in ids] + new
+                self.fused = {}
+                # The older sweeps go straight into a new base: each is fused once.
+                head = every[: len(every) - self.window] if len(every) > 2 * self.window else []
+                self.base = OccupancyGrid(self.params)
+                self._fuse(self.base, head, [_pose(s, estimate) for s in head])
+                self.order, self.settled = head, len(head)
+                recent = every[len(head) :]
+            else:
+                recent = [s for s in self.order[self.settled :] if id(s) in ids] + new
+                for sweep in self.order[self.settled :]:
+                    del self.fused[id(sweep)]
+                self.order = self.order[: self.settled]
             self.grid = self.base.copy() if self.settled else OccupancyGrid(self.params)
-            self._fuse(self.grid, recent, [_pose(s, estimate) for s in recent])
+        self._fuse(self.grid, recent, [_pose(s, estimate) for s in recent])
+        self.order += recent
         if len(self.order) - self.settled > 2 * self.window:
             # The older half of the recent sweeps settles into the base, at the poses the
             # map holds them at: base + the rest is still the map.
@@ -94,9 +102,8 @@ class EstimatedMap:
             self.params,
             grid,
         )
-        if grid is self.grid:
-            for sweep, pose in zip(sweeps, poses, strict=True):
-                self.fused[id(sweep)] = np.array(pose, dtype=float)
+        for sweep, pose in zip(sweeps, poses, strict=True):
+            self.fused[id(sweep)] = np.array(pose, dtype=float)
 
 
 def _pose(sweep: Sweep, estimate: dict[int, np.ndarray]) -> np.ndarray:
