@@ -238,10 +238,10 @@ def _pair(
     rows = []
     for i, a in enumerate(seen_a):
         for j, c in enumerate(seen_c):
-            agree = _agree(a, c, s)
+            gap, spread = _gap(a, c, s)
+            agree = gap <= s.gate_sigmas * spread
             if predicted is None:
-                third, near = False, _gap(a, c, s)[0]
-                taken = False
+                third, near, taken = False, gap, False
             else:
                 third_a, third_c = (
                     _third(a, predicted[0], others[0]),

@@ -141,6 +141,7 @@ class MissionLoop:
         self.now_s = 0.0
         self._fed = 0
         self.clock = WorkClock()
+        self.warm_up_s = 0.0  # compiling the kernels before the first dwell (``run``)
         self._dwells = 0
         self.localizations: list[dict[str, Any]] = []
         self.retries: list[str] = []
@@ -556,7 +557,7 @@ class MissionLoop:
             "changed": self.changed,
             "dwells": self._dwells,
             **self.clock.summary(),
-            "warm_up_s": round(getattr(self, "warm_up_s", 0.0), 3),
+            "warm_up_s": round(self.warm_up_s, 3),
             "map_refusions": self.map.refusions,
             "map_refusions_from_scratch": self.map.from_scratch,
             "concurrent_localization": localizations,

@@ -82,16 +82,13 @@ class WorkClock:
 
     def summary(self) -> dict[str, Any]:
         """``report.json``'s figures: work per dwell (median, p99, max), each part's median,
-        p99 and max, the parts of the slowest dwells, and the waits."""
+        p99 and max, the slowest dwells with their parts, and the waits."""
         work = np.array(self.work_s) if self.work_s else np.zeros(1)
         parts: dict[str, Any] = {}
         for name in PARTS:
             values = np.array([p[name] for p in self.parts]) if self.parts else np.zeros(1)
             parts[name] = _spread(values)
         if self.parts:
-            slowest = int(np.argmax(work))
-            shares = {k: round(v, 4) for k, v in self.parts[slowest].items()}
-            parts["slowest_dwell"] = {"work": float(work[slowest]), **shares}
             parts["slowest_dwells"] = [
                 {"dwell": self.labels[i], "work": round(float(work[i]), 4),
                  **{k: round(v, 4) for k, v in self.parts[i].items()}}
