@@ -354,9 +354,7 @@ class OccupancyGrid:
             bz = coords[:, 2]
             rows = np.flatnonzero((bz * bs <= k_last) & (bz * bs + bs - 1 >= k_first))
             coords, logodds, known_bits = coords[rows], logodds[rows], known_bits[rows]
-        known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].view(bool)
-        block, flat = np.nonzero(known)
-        found = coords[block] * bs + self._local_of_flat()[flat]
+        found, block, flat = self._decode(coords, known_bits)
         values = logodds[block, flat].astype(np.float64)
         if z_range is not None:
             keep = (found[:, 2] >= z_range[0]) & (found[:, 2] <= z_range[1])
@@ -430,16 +428,13 @@ class OccupancyGrid:
     def bounds_cells(self) -> tuple[np.ndarray, np.ndarray]:
         """Smallest and largest known cell index per axis; MapError when nothing is known.
         Only the blocks at the edges of the known blocks are decoded."""
-        n, bs = self.block_count, self.params.block_size_cells
-        rows = np.flatnonzero(self._store.known[:n].any(axis=1))
+        rows = np.flatnonzero(self._store.known[: self.block_count].any(axis=1))
         if len(rows) == 0:
             raise MapError("the grid is empty: no cell has been observed")
         coords = self._store.coords[rows]
         low, high = coords.min(axis=0), coords.max(axis=0)
         edge = rows[((coords == low) | (coords == high)).any(axis=1)]
-        bits = np.unpackbits(self._store.known[edge], axis=1, bitorder="little")
-        block, flat = np.nonzero(bits[:, : bs**3])
-        cells = self._store.coords[edge][block] * bs + self._local_of_flat()[flat]
+        cells, _, _ = self._decode(self._store.coords[edge], self._store.known[edge])
         return cells.min(axis=0), cells.max(axis=0)
 
     # -- blocks (for file formats and resampling) ---------------------------------------------
@@ -510,6 +505,16 @@ class OccupancyGrid:
         return grid
 
     # -- helpers ----------------------------------------------------------------------------
+
+    def _decode(
+        self, coords: np.ndarray, known_bits: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The known cells of blocks at ``coords`` with ``known_bits``: (N, 3) cell indices,
+        and each one's row in the blocks given and storage offset in its block."""
+        bs = self.params.block_size_cells
+        known = np.unpackbits(known_bits, axis=1, bitorder="little")[:, : bs**3].view(bool)
+        block, flat = np.nonzero(known)
+        return coords[block] * bs + self._local_of_flat()[flat], block, flat
 
     def _known_mask(self, n: int) -> np.ndarray:
         """(n, bs³) bool: which cells of the first n blocks are known, in storage order."""
