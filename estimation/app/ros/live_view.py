@@ -15,8 +15,11 @@ reach it, without authentication.
 
 from __future__ import annotations
 
+import errno
 import queue
+import socket
 import threading
+import time
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
@@ -41,6 +44,9 @@ DEFAULT_HOST = "127.0.0.1"
 #: Foxglove's default port for a WebSocket connection.
 DEFAULT_PORT = 8765
 _TF_TOPICS = ("/tf", "/tf_static")
+#: How long :meth:`LiveView.stop` waits for the server's socket to close (it closes a moment
+#: after the SDK's ``stop`` returns).
+_RELEASE_S = 5.0
 
 
 def latest_state(messages: Iterable[BagMessage], ros: RosMessages) -> list[BagMessage]:
@@ -67,6 +73,26 @@ def latest_state(messages: Iterable[BagMessage], ros: RosMessages) -> list[BagMe
             m = BagMessage(topic, m.msgtype, stamp, message, m.latched)
         out.append(m)
     return out
+
+
+def _wait_released(host: str, port: int, seconds: float) -> None:
+    """Wait until ``host``:``port`` can be bound again, for at most ``seconds``: the SDK's
+    server closes its listening socket a moment after ``stop`` returns."""
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    except OSError:
+        return
+    deadline = time.monotonic() + seconds
+    while True:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind(address)
+                return
+            except OSError as exc:
+                if exc.errno != errno.EADDRINUSE or time.monotonic() > deadline:
+                    return
+        time.sleep(0.002)
 
 
 class _Latch(ServerListener):
@@ -127,7 +153,8 @@ class LiveView:
         return self
 
     def stop(self) -> None:
-        """Close the channels and stop the server (idempotent)."""
+        """Close the channels and stop the server (idempotent). When it returns, the port is
+        free again (waited for up to a few seconds)."""
         server, self._server = self._server, None
         if server is None:
             return
@@ -135,7 +162,9 @@ class LiveView:
         self._requests.put(None)
         if self._resender is not None:
             self._resender.join()
+        port = int(server.port)
         server.stop()
+        _wait_released(self.host, port, _RELEASE_S)
         with self._lock:
             for channel in self._channels.values():
                 channel.close()

@@ -11,6 +11,7 @@ import json
 import os
 import socket
 import struct
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,7 +27,7 @@ from estimation.app.cli.main import app
 from estimation.app.pipeline import run_batch
 from estimation.app.ros.bag import BagMessage
 from estimation.app.ros.export import read_result, result_messages
-from estimation.app.ros.live_view import LiveView, latest_state
+from estimation.app.ros.live_view import LiveView, _wait_released, latest_state
 from estimation.app.ros.messages import (
     FOXGLOVE_PACKED_ELEMENT_FIELD_MSG,
     FOXGLOVE_VOXEL_GRID_MSG,
@@ -324,6 +325,37 @@ def test_a_port_in_use_and_a_bad_host_are_one_line_errors() -> None:
         LiveView(host="no.such.host.invalid", port=0).start()
     with pytest.raises(EstimationError, match=r"port must be in 0\.\.65535, got 70000"):
         LiveView(port=70000)
+
+
+def test_the_port_is_free_when_stop_returns() -> None:
+    # The SDK closes its listening socket a moment after its stop returns; the view waits.
+    for _ in range(30):
+        view = LiveView(port=0).start()
+        port = view.port
+        view.stop()
+        with socket.socket() as again:
+            again.bind(("127.0.0.1", port))
+        view.stop()  # idempotent
+
+
+def test_stop_waits_for_the_listening_socket_to_close_and_no_longer() -> None:
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    threading.Timer(0.3, listener.close).start()
+    started = time.monotonic()
+    _wait_released("127.0.0.1", port, 5.0)
+    assert 0.3 <= time.monotonic() - started < 2.0
+    with socket.socket() as again:
+        again.bind(("127.0.0.1", port))
+    with socket.socket() as held:  # never released: the wait ends at its bound
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        started = time.monotonic()
+        _wait_released("127.0.0.1", held.getsockname()[1], 0.2)
+        assert 0.2 <= time.monotonic() - started < 1.5
+    _wait_released("no.such.host.invalid", 1, 5.0)  # a host that does not resolve: no wait
 
 
 def test_batch_view_serves_the_result_for_the_seconds_asked(result: Path, tmp_path: Path) -> None:
