@@ -30,7 +30,7 @@ from typing import Literal
 import numpy as np
 
 from estimation.errors import EstimationError
-from sensors.geometry.se2 import wrap_angle
+from sensors.geometry.se2 import between, compose, wrap_angle
 
 __all__ = [
     "DEFAULT_MIN_RANGE_M",
@@ -42,6 +42,7 @@ __all__ = [
     "check_observation",
     "closed_form",
     "closed_form_jacobian",
+    "closure_distance",
     "cramer_rao_bound",
     "gap_scale",
     "gap_sigma",
@@ -108,6 +109,52 @@ def closed_form_jacobian(
         dC = dC_du[..., None] * du + dC_dv[..., None] * dv
         dyaw = (du / (u - d_m)[..., None]).imag - (dv / (v - d_m)[..., None]).imag
     return np.stack([dC.real, dC.imag, dyaw], axis=-2)
+
+
+def _closure(z: np.ndarray, d_m: float) -> np.ndarray:
+    """(..., 3) residual of :func:`closure_distance` for stacked measurements z (..., 12)."""
+    ac, at, tc = (
+        closed_form(z[..., k], z[..., k + 1], z[..., k + 2], z[..., k + 3], d_m) for k in (0, 4, 8)
+    )
+    return between(ac, compose(at, tc))
+
+
+def closure_distance(
+    z_ac: np.ndarray,
+    z_at: np.ndarray,
+    z_tc: np.ndarray,
+    d_m: float,
+    range_sigma_m: float,
+    bearing_sigma_rad: float,
+) -> np.ndarray:
+    """Squared Mahalanobis distances (...,) of how far three robots' mutual observations fail
+    to close: C's pose in A's frame measured directly and through the third robot T.
+
+    Each ``z`` is (..., 4) ``(a, α, b, β)``: ``z_ac`` A sees C's beacon, C sees A's; ``z_at`` A
+    sees T's, T sees A's; ``z_tc`` T sees C's, C sees T's. The residual is ``P_AC⁻¹ ∘ P_AT ∘
+    P_TC`` of the closed-form poses, its covariance the twelve measurements' noise propagated by
+    a numerical Jacobian: χ² with 3 degrees of freedom when the three pairs are what they claim
+    to be. Two robots' detections swapped (a third beacon taken for the partner's at the same
+    distance) leave a residual of the order of the distances (non-finite for degenerate input).
+    """
+    z = np.concatenate(np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in
+                                             (z_ac, z_at, z_tc))), axis=-1)  # fmt: skip
+    with np.errstate(divide="ignore", invalid="ignore"):
+        residual = _closure(z, d_m)
+        steps = np.tile([1e-6, 1e-7, 1e-6, 1e-7], 3)
+        sigmas = np.tile([range_sigma_m, bearing_sigma_rad] * 2, 3)
+        J = np.empty((*z.shape[:-1], 3, 12))
+        for k in range(12):
+            moved = z.copy()
+            moved[..., k] += steps[k]
+            change = _closure(moved, d_m) - residual
+            change[..., 2] = wrap_angle(change[..., 2])
+            J[..., k] = change / steps[k] * sigmas[k]
+        # A floor far below any measurement's: an exactly singular covariance never raises.
+        covariance = J @ np.swapaxes(J, -1, -2) + 1e-12 * np.eye(3)
+        return np.einsum(
+            "...i,...i->...", residual, np.linalg.solve(covariance, residual[..., None])[..., 0]
+        )
 
 
 def measurements(pose: np.ndarray, d_m: float) -> np.ndarray:

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _motion, _pair, _third
+from estimation.app.events import EventMaker, _closing, _motion, _pair, _third
 from estimation.posegraph.events import Move, Start
 from estimation.posegraph.graph import GraphSettings, odometry_covariance
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.mutual import measurements
+from estimation.posegraph.mutual import measurements, separations
 from sensors.geometry import se2
 from sensors.scan3d.beacon import BeaconDetection
 from sensors.trajio import pose_at
@@ -224,3 +224,49 @@ def test_a_beacon_that_the_third_robots_own_sweep_claims_is_never_the_partners()
     elsewhere = [detection(c_sees_a.range_m + 0.8, c_sees_a.bearing_rad)]
     assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS, others, [elsewhere])[0] is a_sees_c
     assert _pair([a_sees_c], [b_sees_a], None, SETTINGS, others, [[c_sees_a]])[0] is a_sees_c
+
+
+def test_three_robots_standing_symmetric_are_told_apart_by_the_closure_of_their_triangle() -> None:
+    """Generated building 106: a's and c's beacons stood as far from b's (2.2 m) and 20° apart
+    as b saw them, so b's detection of either agreed with c's of b, and the estimate (drifted
+    towards a) picked a's. a's own sweep closes the triangle only with b's detection of c."""
+    b = np.array([0.0, 0.0, 0.0])
+    beacon_b = np.array([D, 0.0])
+
+    def standing(angle_deg: float, heading_deg: float) -> np.ndarray:
+        beacon = beacon_b + 2.2 * np.array([math.cos(math.radians(angle_deg)),
+                                            math.sin(math.radians(angle_deg))])  # fmt: skip
+        heading = math.radians(heading_deg)
+        return np.array([*(beacon - D * np.array([math.cos(heading), math.sin(heading)])),
+                         heading])  # fmt: skip
+
+    a, c = standing(30.0, 200.0), standing(50.0, 250.0)
+
+    def pair(p: np.ndarray, q: np.ndarray) -> tuple[BeaconDetection, BeaconDetection]:
+        return seen(list(se2.between(p, q)))
+
+    b_sees_c, c_sees_b = pair(b, c)
+    b_sees_a, a_sees_b = pair(b, a)
+    a_sees_c, c_sees_a = pair(a, c)
+    # Every pairing of b's detections with c's of b agrees (the same beacon distance).
+    for wrong in (b_sees_a, b_sees_c):
+        assert abs(float(np.subtract(*separations(wrong.range_m, wrong.bearing_rad, c_sees_b.range_m,
+                                                  c_sees_b.bearing_rad, D)))) < 1e-9  # fmt: skip
+    drifted = ((b_sees_a.range_m, b_sees_a.bearing_rad + 0.05),
+               (c_sees_b.range_m, c_sees_b.bearing_rad))  # fmt: skip
+    ours = [b_sees_a, b_sees_c], [c_sees_a, c_sees_b]
+    assert _pair(*ours, drifted, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
+    thirds = [[a_sees_c, a_sees_b]]
+    assert _pair(*ours, drifted, SETTINGS, ([None], [None]), thirds) == (b_sees_c, c_sees_b)
+    assert _closing(*ours, thirds, SETTINGS) == {(1, 1)}
+    # Measurement noise of the configured size keeps the closure; a's sweep that misses one
+    # beacon, or sees it 30 cm off, closes nothing and leaves the estimate to choose.
+    rng = np.random.default_rng(3)
+    noisy = [[detection(x.range_m + rng.normal(0, 0.01), x.bearing_rad + rng.normal(0, 0.002))
+              for x in seen_by] for seen_by in (*ours, thirds[0])]  # fmt: skip
+    assert _closing(noisy[0], noisy[1], [noisy[2]], SETTINGS) == {(1, 1)}
+    assert _closing(*ours, [[a_sees_b]], SETTINGS) == set()
+    off = detection(a_sees_c.range_m + 0.3, a_sees_c.bearing_rad)
+    assert _closing(*ours, [[off, a_sees_b]], SETTINGS) == set()
+    assert _pair(*ours, drifted, SETTINGS, ([None], [None]), [[off, a_sees_b]])[0] is b_sees_a
+    assert _closing(*ours, [], SETTINGS) == set()

@@ -16,6 +16,7 @@ from estimation.posegraph.mutual import (
     check_observation,
     closed_form,
     closed_form_jacobian,
+    closure_distance,
     cramer_rao_bound,
     gap_scale,
     gap_sigma,
@@ -240,3 +241,33 @@ def test_gap_scale_is_the_robust_spread_of_the_gaps_within_its_bounds() -> None:
     assert gap_scale([10.0] * 50, 0.1) == MAX_GAP_SCALE
     # The median: a few wild gaps do not move it.
     assert gap_scale([0.5] * 40 + [3.0] * 9, 0.1) == pytest.approx(1.4826 * 0.5)
+
+
+def test_the_closure_of_three_robots_observations_is_chi_square_with_three_dof() -> None:
+    rng = np.random.default_rng(11)
+    n = 3000
+    at, tc = random_poses(rng, n, 0.8, 5.0), random_poses(rng, n, 0.8, 5.0)
+    ac = se2.compose(at, tc)
+    keep = np.abs(ac[:, 0] + 1j * ac[:, 1] + D * np.exp(1j * ac[:, 2]) - D) > 0.5
+    at, tc, ac = at[keep], tc[keep], ac[keep]
+
+    def z(pose: np.ndarray) -> np.ndarray:
+        return measurements(pose, D) + rng.normal(size=(len(pose), 4)) * NOISE
+
+    d2 = closure_distance(z(ac), z(at), z(tc), D, SIGMA_R, SIGMA_B)
+    assert d2.shape == (len(ac),)
+    assert np.mean(d2) == pytest.approx(3.0, rel=0.1)
+    assert np.mean(d2 > chi2.ppf(0.99, 3)) == pytest.approx(0.01, abs=0.006)
+    # A third robot's detection taken for the partner's: C's pose off by the gap between them.
+    swapped = measurements(ac, D)
+    swapped[:, :2] = measurements(at, D)[:, :2]
+    beacon = measurements(ac, D)[:, 0] * np.exp(1j * measurements(ac, D)[:, 1])
+    apart = np.abs(beacon - swapped[:, 0] * np.exp(1j * swapped[:, 1]))
+    wrong = closure_distance(swapped, measurements(at, D), measurements(tc, D), D, SIGMA_R, SIGMA_B)
+    assert np.all(wrong[apart > 0.3] > 100.0)
+    # Broadcast over one pair; degenerate geometry (a beacon on the other's) is not finite.
+    one = closure_distance(measurements(ac[0], D), measurements(at, D), measurements(tc, D), D,
+                           SIGMA_R, SIGMA_B)  # fmt: skip
+    assert one.shape == (len(at),)
+    assert not np.isfinite(closure_distance([D, 0.0, D, 0.0], measurements(at[0], D),
+                                            measurements(tc[0], D), D, SIGMA_R, SIGMA_B))  # fmt: skip
