@@ -4,6 +4,7 @@ maps fused from scratch (bit for bit with no tolerance), the older stations' map
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
+from estimation.posegraph.smoother import relative_covariances
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
@@ -416,3 +418,59 @@ def test_a_loop_closure_is_anchored_on_the_nearest_tied_station(mission) -> None
     assert stations_module._anchor(near, distance, stations, ties) == 2
     assert stations_module._anchor(near, distance, stations, mutual_ties(factors)) == 0
     assert stations_module._anchor(np.array([0]), distance, stations, ties) == 0  # none tied
+
+
+def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_against_its_anchor() -> (
+    None
+):
+    """Stations a0–a3 tied tightly, then an untied stretch (3° of heading), then a4–a6 tied
+    tightly again: a new station after them, anchored on a1, matches a0–a3 only. a4–a6 lie in
+    the anchor's frame as far off as the new station itself (generated building 106)."""
+    tight, loose = (
+        np.diag([1e-4, 1e-4, math.radians(0.05) ** 2]),
+        np.diag([0.01, 0.01, math.radians(3.0) ** 2]),
+    )
+    keys = [pose_key("a", n) for n in range(8)]
+    estimate = {k: np.array([1.0 * n, 0.0, 0.0]) for n, k in enumerate(keys)}
+    step = np.array([1.0, 0.0, 0.0])
+    chain = [tight, tight, tight, loose, tight, tight, loose]
+    factors = [FactorSpec("prior", (keys[0],), estimate[keys[0]], tight * 1e-2, 0)]
+    factors += [FactorSpec("odometry", (keys[n], keys[n + 1]), step, c, n + 1)
+                for n, c in enumerate(chain)]  # fmt: skip
+    relative = relative_covariances(factors, estimate)
+    stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
+    anchor, older, new = stations[1], stations[:7], stations[7]
+    sigma_m, sigma_rad = stations_module._sigmas(relative(anchor.key, new.key))
+    assert sigma_rad > math.radians(4.0)
+    kept = stations_module._known_to(anchor, older, sigma_m, sigma_rad, relative)
+    assert kept == stations[:4]
+    # A new station tied tightly to a6 still rests on the untied stretch, as a4–a6 do.
+    tied = [*factors[:-1], FactorSpec("odometry", (keys[6], keys[7]), step, tight, 7)]
+    relative = relative_covariances(tied, estimate)
+    assert stations_module._known_to(anchor, older, *stations_module._sigmas(
+        relative(anchor.key, new.key)), relative) == stations[:4]  # fmt: skip
+    # No untied stretch: every older station lies within the floors (0.1 m, 0.5°); the anchor
+    # is always matched.
+    all_tight = [*factors[:1], *(dataclasses.replace(f, covariance=tight) for f in factors[1:])]
+    relative = relative_covariances(all_tight, estimate)
+    assert stations_module._known_to(anchor, older, 0.0, 0.0, relative) == older
+    assert stations_module._known_to(anchor, [anchor], 0.0, 0.0, relative) == [anchor]
+
+
+def test_relative_covariances_around_one_pose_equal_those_of_each_pair(mission) -> None:
+    _, factors = mission
+    estimate = dict(TRUTH)
+    prior = FactorSpec("prior", (pose_key("a", 0),), TRUTH[pose_key("a", 0)], np.eye(3), 0)
+    odometry = [FactorSpec("odometry", (pose_key(r, i), pose_key(r, i + 1)),
+                           se2.between(TRUTH[pose_key(r, i)], TRUTH[pose_key(r, i + 1)]),
+                           np.diag([0.02, 0.03, 0.004]), 10 + i)
+                for r in "ab" for i in range(3)]  # fmt: skip
+    relative = relative_covariances([prior, *factors, *odometry], estimate)
+    anchor = pose_key("b", 1)
+    keys = [pose_key("a", 3), anchor, pose_key("a", 0), pose_key("b", 3), pose_key("a", 3)]
+    around = relative.around(anchor, keys)
+    for key, covariance in zip(keys, around, strict=True):
+        expected = np.zeros((3, 3)) if key == anchor else relative(anchor, key)
+        np.testing.assert_allclose(covariance, expected, atol=1e-12)
+    assert relative.around(anchor, []) == []
+    assert [c.tolist() for c in relative.around(anchor, [anchor])] == [np.zeros((3, 3)).tolist()]
