@@ -25,7 +25,12 @@ from estimation.chi2 import chi2_quantile
 from estimation.posegraph.events import Event, Move, Observe, Start
 from estimation.posegraph.graph import GraphBuilder, GraphSettings
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.mutual import closure_distance, gap_sigma, separations
+from estimation.posegraph.mutual import (
+    closure_distance,
+    gap_sigma,
+    separations,
+    sighting_distance,
+)
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from sensors.scan3d.beacon import BeaconDetection, detect_beacons
@@ -35,6 +40,8 @@ __all__ = ["Counts", "EventMaker", "EventStream", "build_events"]
 
 #: χ² (3 degrees of freedom) within which three robots' mutual observations close.
 _CLOSURE_CHI2 = chi2_quantile(0.999, 3)
+#: χ² (2 degrees of freedom) within which a one-way sighting lies where two observations put it.
+_SIGHTING_CHI2 = chi2_quantile(0.999, 2)
 #: Assignments of a dwell's detections tried for closure at most (a bound on the work).
 _CLOSURE_MAX = 100_000
 
@@ -265,8 +272,8 @@ def _pair(
                 third = third_a or third_c
                 near = _apart(a, predicted[0]) + _apart(c, predicted[1])
                 taken = (third_a and _claimed(a, thirds, s)) or (third_c and _claimed(c, thirds, s))
-            closes = (i, j) in closing
-            rows.append((not agree, not closes, taken and not closes, third, near,
+            closes = closing.get((i, j), 0)
+            rows.append((not agree, -closes, taken and not closes, third, near,
                          -(a.quality + c.quality), i, j))  # fmt: skip
     best = min(rows)
     if best[2]:
@@ -275,40 +282,88 @@ def _pair(
     return seen_a[i], seen_c[j]
 
 
+def _z(first: BeaconDetection, second: BeaconDetection) -> tuple[float, float, float, float]:
+    """A mutual observation's four numbers: ``first`` sees the other's beacon, ``second`` the
+    first's."""
+    return (first.range_m, first.bearing_rad, second.range_m, second.bearing_rad)
+
+
 def _closing(
     seen_a: list[BeaconDetection],
     seen_c: list[BeaconDetection],
     thirds: Sequence[list[BeaconDetection]],
     s: GraphSettings,
-) -> set[tuple[int, int]]:
-    """The pairs (i, j) of A's and C's detections (A's of C's beacon, C's of A's) that close a
-    triangle with a third robot T: A's other detection i' and T's detection k agree as A–T's
-    mutual observation, C's other j' and T's other k' as T–C's, and C's pose through T
-    matches the pair's (:func:`~estimation.posegraph.mutual.closure_distance`, 99.9 %)."""
-    out: set[tuple[int, int]] = set()
+) -> dict[tuple[int, int], int]:
+    """How well each pair (i, j) of A's and C's detections (A's of C's beacon, C's of A's)
+    closes a triangle with a third robot T: 2 when a whole triangle closes (A's other detection
+    i' and T's k agree as A–T's mutual observation, C's other j' and T's other k' as T–C's, and
+    C's pose through T matches the pair's: :func:`~estimation.posegraph.mutual.closure_distance`,
+    99.9 %); 1 when one mutual observation with T and the pair place a one-way sighting that a
+    third sweep holds (:func:`~estimation.posegraph.mutual.sighting_distance`, 99.9 %: T's
+    beacon where the robot not in that observation saw it, or its beacon where T saw it).
+    Pairs that close nothing are left out."""
+    out: dict[tuple[int, int], int] = {}
+    d, sr, sb = s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad
+    pairs = list(itertools.product(range(len(seen_a)), range(len(seen_c))))
     for seen_t in thirds:
         at = [(i, k) for i, a in enumerate(seen_a) for k, t in enumerate(seen_t)
               if _agree(a, t, s)]  # fmt: skip
         tc = [(k, j) for k, t in enumerate(seen_t) for j, c in enumerate(seen_c)
               if _agree(t, c, s)]  # fmt: skip
-        combos = [(i, j, i2, k, k2, j2)
-                  for i, j in itertools.product(range(len(seen_a)), range(len(seen_c)))
-                  for i2, k in at if i2 != i for k2, j2 in tc if k2 != k and j2 != j]  # fmt: skip
-        if not combos or len(combos) > _CLOSURE_MAX:
+        whole = [(i, j, i2, k, k2, j2) for i, j in pairs for i2, k in at if i2 != i
+                 for k2, j2 in tc if k2 != k and j2 != j]  # fmt: skip
+        if whole and len(whole) <= _CLOSURE_MAX:
+            z_ac, z_at, z_tc = (
+                np.array(v).reshape(-1, 4)
+                for v in zip(
+                    *(
+                        (
+                            _z(seen_a[i], seen_c[j]),
+                            _z(seen_a[i2], seen_t[k]),
+                            _z(seen_t[k2], seen_c[j2]),
+                        )
+                        for i, j, i2, k, k2, j2 in whole
+                    ),
+                    strict=True,
+                )
+            )
+            d2 = closure_distance(z_ac, z_at, z_tc, d, sr, sb)  # fmt: skip
+            for (i, j, *_), value in zip(whole, d2, strict=True):
+                if value <= _CLOSURE_CHI2:
+                    out[i, j] = 2
+        # One observation with T, and a sighting of or by the robot not in it.
+        one: list[tuple[int, int, tuple[float, ...], tuple[float, float], str, int]] = []
+        for i, j in pairs:
+            for i2, k in at:
+                if i2 == i:
+                    continue
+                zp = _z(seen_a[i2], seen_t[k])
+                one += [(i, j, zp, (c.range_m, c.bearing_rad), "A", 0)
+                        for n, c in enumerate(seen_c) if n != j]  # fmt: skip
+                one += [(i, j, zp, (t.range_m, t.bearing_rad), "A", 1)
+                        for n, t in enumerate(seen_t) if n != k]  # fmt: skip
+            for k, j2 in tc:
+                if j2 == j:
+                    continue
+                zp = _z(seen_c[j2], seen_t[k])
+                one += [(i, j, zp, (a.range_m, a.bearing_rad), "C", 0)
+                        for n, a in enumerate(seen_a) if n != i]  # fmt: skip
+                one += [(i, j, zp, (t.range_m, t.bearing_rad), "C", 1)
+                        for n, t in enumerate(seen_t) if n != k]  # fmt: skip
+        if not one or len(one) > _CLOSURE_MAX:
             continue
-
-        def z(first: list[BeaconDetection], second: list[BeaconDetection],
-              p: np.ndarray, q: np.ndarray) -> np.ndarray:  # fmt: skip
-            return np.array([(first[m].range_m, first[m].bearing_rad,
-                              second[n].range_m, second[n].bearing_rad)
-                             for m, n in zip(p, q, strict=True)])  # fmt: skip
-
-        i, j, i2, k, k2, j2 = np.array(combos).T
-        d2 = closure_distance(z(seen_a, seen_c, i, j), z(seen_a, seen_t, i2, k),
-                              z(seen_t, seen_c, k2, j2), s.beacon_offset_m, s.range_sigma_m,
-                              s.bearing_sigma_rad)  # fmt: skip
-        out.update((int(p), int(q)) for p, q, d in zip(i, j, d2, strict=True)
-                   if d <= _CLOSURE_CHI2)  # fmt: skip
+        for through, observer in (("A", 0), ("A", 1), ("C", 0), ("C", 1)):
+            rows = [r for r in one if r[4] == through and r[5] == observer]
+            if not rows:
+                continue
+            d2 = sighting_distance(
+                np.array([_z(seen_a[r[0]], seen_c[r[1]]) for r in rows]),
+                np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
+                through, observer, d, sr, sb,  # type: ignore[arg-type]
+            )  # fmt: skip
+            for r, value in zip(rows, d2, strict=True):
+                if value <= _SIGHTING_CHI2:
+                    out[r[0], r[1]] = max(out.get((r[0], r[1]), 0), 1)
     return out
 
 

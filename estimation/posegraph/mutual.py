@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import cmath
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -31,6 +31,7 @@ import numpy as np
 
 from estimation.errors import EstimationError
 from sensors.geometry.se2 import between, compose, wrap_angle
+from sensors.geometry.se2 import inverse as se2_inverse
 
 __all__ = [
     "DEFAULT_MIN_RANGE_M",
@@ -52,6 +53,7 @@ __all__ = [
     "refine_relative_pose",
     "relative_pose",
     "separations",
+    "sighting_distance",
 ]
 
 #: Ranges below this are not beacon detections (the LMS's own minimum is 0.05 m).
@@ -119,6 +121,38 @@ def _closure(z: np.ndarray, d_m: float) -> np.ndarray:
     return between(ac, compose(at, tc))
 
 
+def _mahalanobis(
+    residual: Callable[[np.ndarray], np.ndarray],
+    z: np.ndarray,
+    sigmas: np.ndarray,
+    angle: int,
+) -> np.ndarray:
+    """Squared Mahalanobis distances (...,) of ``residual(z)`` (..., m), its covariance the
+    measurements' independent noise (``sigmas``, one per column of z) propagated by a numerical
+    Jacobian; column ``angle`` of the residual is an angle (its differences wrapped)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = residual(z)
+        m = r.shape[-1]
+        J = np.empty((*z.shape[:-1], m, z.shape[-1]))
+        for k in range(z.shape[-1]):
+            step = 1e-7 if k % 2 else 1e-6  # columns alternate range, bearing
+            moved = z.copy()
+            moved[..., k] += step
+            change = residual(moved) - r
+            change[..., angle] = wrap_angle(change[..., angle])
+            J[..., k] = change / step * sigmas[k]
+        # A floor far below any measurement's: an exactly singular covariance never raises.
+        covariance = J @ np.swapaxes(J, -1, -2) + 1e-12 * np.eye(m)
+        return np.einsum("...i,...i->...", r, np.linalg.solve(covariance, r[..., None])[..., 0])
+
+
+def _stacked(*parts: np.ndarray | Sequence[float]) -> np.ndarray:
+    """The measurement vectors side by side (..., n1 + n2 + …), leading axes broadcast."""
+    arrays = [np.asarray(v, dtype=float) for v in parts]
+    lead = np.broadcast_shapes(*(a.shape[:-1] for a in arrays))
+    return np.concatenate([np.broadcast_to(a, (*lead, a.shape[-1])) for a in arrays], axis=-1)
+
+
 def closure_distance(
     z_ac: np.ndarray,
     z_at: np.ndarray,
@@ -137,24 +171,46 @@ def closure_distance(
     to be. Two robots' detections swapped (a third beacon taken for the partner's at the same
     distance) leave a residual of the order of the distances (non-finite for degenerate input).
     """
-    z = np.concatenate(np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in
-                                             (z_ac, z_at, z_tc))), axis=-1)  # fmt: skip
-    with np.errstate(divide="ignore", invalid="ignore"):
-        residual = _closure(z, d_m)
-        steps = np.tile([1e-6, 1e-7, 1e-6, 1e-7], 3)
-        sigmas = np.tile([range_sigma_m, bearing_sigma_rad] * 2, 3)
-        J = np.empty((*z.shape[:-1], 3, 12))
-        for k in range(12):
-            moved = z.copy()
-            moved[..., k] += steps[k]
-            change = _closure(moved, d_m) - residual
-            change[..., 2] = wrap_angle(change[..., 2])
-            J[..., k] = change / steps[k] * sigmas[k]
-        # A floor far below any measurement's: an exactly singular covariance never raises.
-        covariance = J @ np.swapaxes(J, -1, -2) + 1e-12 * np.eye(3)
-        return np.einsum(
-            "...i,...i->...", residual, np.linalg.solve(covariance, residual[..., None])[..., 0]
-        )
+    sigmas = np.tile([range_sigma_m, bearing_sigma_rad], 6)
+    return _mahalanobis(lambda z: _closure(z, d_m), _stacked(z_ac, z_at, z_tc), sigmas, 2)
+
+
+def _sighting(z: np.ndarray, d_m: float, through: str, observer: int) -> np.ndarray:
+    """(..., 2) residual of :func:`sighting_distance` for stacked z (..., 10)."""
+    ac, pair = (closed_form(z[..., k], z[..., k + 1], z[..., k + 2], z[..., k + 3], d_m)
+                for k in (0, 4))  # fmt: skip
+    # T's pose in C's frame (through A) or in A's (through C).
+    pose = compose(se2_inverse(ac), pair) if through == "A" else compose(ac, pair)
+    predicted = measurements(pose, d_m)[..., 2 * observer : 2 * observer + 2]
+    out = z[..., 8:10] - predicted
+    out[..., 1] = wrap_angle(out[..., 1])
+    return out
+
+
+def sighting_distance(
+    z_ac: np.ndarray,
+    z_pair: np.ndarray,
+    observed: np.ndarray,
+    through: Literal["A", "C"],
+    observer: Literal[0, 1],
+    d_m: float,
+    range_sigma_m: float,
+    bearing_sigma_rad: float,
+) -> np.ndarray:
+    """Squared Mahalanobis distances (...,) of a one-way sighting from where two mutual
+    observations place it: the part of a triangle's closure that one missing detection leaves.
+
+    ``z_ac`` (..., 4) is A and C's observation, ``z_pair`` (..., 4) a third robot T's with A
+    (``through="A"``: A sees T's beacon, T sees A's) or with C (``"C"``: C sees T's, T sees
+    C's). Together they place T against the robot not in the pair — X, C or A — and
+    ``observed`` (..., 2) (range, bearing) is checked against X's sighting of T's beacon
+    (``observer`` 0) or T's of X's (1). χ² with 2 degrees of freedom when all is what it
+    claims to be. Building 106: b saw a's beacon and c's at the same distance, a saw b's and
+    not c's, and c saw a's 1.07 m away: through the b–a pair, b's true detection of c puts a's
+    beacon 1.07 m from c, the other 0.88 m away and 128° off."""
+    sigmas = np.tile([range_sigma_m, bearing_sigma_rad], 5)
+    return _mahalanobis(lambda z: _sighting(z, d_m, through, observer),
+                        _stacked(z_ac, z_pair, observed), sigmas, 1)  # fmt: skip
 
 
 def measurements(pose: np.ndarray, d_m: float) -> np.ndarray:

@@ -258,15 +258,41 @@ def test_three_robots_standing_symmetric_are_told_apart_by_the_closure_of_their_
     assert _pair(*ours, drifted, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
     thirds = [[a_sees_c, a_sees_b]]
     assert _pair(*ours, drifted, SETTINGS, ([None], [None]), thirds) == (b_sees_c, c_sees_b)
-    assert _closing(*ours, thirds, SETTINGS) == {(1, 1)}
-    # Measurement noise of the configured size keeps the closure; a's sweep that misses one
-    # beacon, or sees it 30 cm off, closes nothing and leaves the estimate to choose.
+    whole = {pair for pair, level in _closing(*ours, thirds, SETTINGS).items() if level == 2}
+    assert whole == {(1, 1)}
+    # Measurement noise of the configured size keeps the closure.
     rng = np.random.default_rng(3)
     noisy = [[detection(x.range_m + rng.normal(0, 0.01), x.bearing_rad + rng.normal(0, 0.002))
               for x in seen_by] for seen_by in (*ours, thirds[0])]  # fmt: skip
-    assert _closing(noisy[0], noisy[1], [noisy[2]], SETTINGS) == {(1, 1)}
-    assert _closing(*ours, [[a_sees_b]], SETTINGS) == set()
+    assert _closing(noisy[0], noisy[1], [noisy[2]], SETTINGS)[1, 1] == 2
+    # a's sweep misses c's beacon, or sees it 30 cm off: no whole triangle, but the b–a
+    # observation and the pair put a's beacon where c saw it only with b's detection of c.
     off = detection(a_sees_c.range_m + 0.3, a_sees_c.bearing_rad)
-    assert _closing(*ours, [[off, a_sees_b]], SETTINGS) == set()
-    assert _pair(*ours, drifted, SETTINGS, ([None], [None]), [[off, a_sees_b]])[0] is b_sees_a
-    assert _closing(*ours, [], SETTINGS) == set()
+    for third in ([a_sees_b], [off, a_sees_b]):
+        assert _closing(*ours, [third], SETTINGS) == {(1, 1): 1}
+        assert _pair(*ours, drifted, SETTINGS, ([None], [None]), [third])[0] is b_sees_c
+    # c does not see a's beacon either: nothing closes, and the estimate chooses.
+    assert _closing(ours[0], [c_sees_b], [[a_sees_b]], SETTINGS) == {}
+    assert _pair(ours[0], [c_sees_b], drifted, SETTINGS, ([None], [None]), [[a_sees_b]])[0] is (
+        b_sees_a
+    )
+    # The sighting by the third robot: a sees c's beacon where the b–a pair puts it.
+    assert _closing(ours[0], [c_sees_b], [[a_sees_c, a_sees_b]], SETTINGS) == {(1, 0): 1}
+    assert _closing(*ours, [], SETTINGS) == {}
+
+
+def test_a_one_way_sighting_tells_the_partner_from_a_third_robot_at_the_same_distance() -> None:
+    """Generated building 106, dwell 1053 (reference b, mapper c), as recorded: b saw c's
+    beacon at 2.187 m / −41.8° and a's at 2.234 m / −18.4°; c saw a's at 1.069 m / −41.0° and
+    b's at 2.236 m / 22.2°; a saw b's at 2.226 m / 21.0° and not c's. Both of b's detections
+    agree with c's of b; only b's true detection of c, with the b–a observation, puts a's beacon
+    where c saw it (it was taken 1.04 m and 25.8° off, from an estimate that placed a there)."""
+    r = math.radians
+    b_sees_c, b_sees_a = detection(2.187, r(-41.8)), detection(2.234, r(-18.4))
+    c_sees_a, c_sees_b = detection(1.069, r(-41.0)), detection(2.236, r(22.2))
+    a_sees_b = detection(2.226, r(21.0))
+    towards_a = ((b_sees_a.range_m, b_sees_a.bearing_rad), (c_sees_b.range_m, c_sees_b.bearing_rad))
+    seen = [b_sees_a, b_sees_c], [c_sees_a, c_sees_b]
+    assert _pair(*seen, towards_a, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
+    assert _closing(*seen, [[a_sees_b]], SETTINGS) == {(1, 1): 1}
+    assert _pair(*seen, towards_a, SETTINGS, ([None], [None]), [[a_sees_b]]) == (b_sees_c, c_sees_b)

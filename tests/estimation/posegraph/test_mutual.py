@@ -26,6 +26,7 @@ from estimation.posegraph.mutual import (
     refine_relative_pose,
     relative_pose,
     separations,
+    sighting_distance,
 )
 from sensors.geometry import se2
 
@@ -271,3 +272,34 @@ def test_the_closure_of_three_robots_observations_is_chi_square_with_three_dof()
     assert one.shape == (len(at),)
     assert not np.isfinite(closure_distance([D, 0.0, D, 0.0], measurements(at[0], D),
                                             measurements(tc[0], D), D, SIGMA_R, SIGMA_B))  # fmt: skip
+
+
+@pytest.mark.parametrize(("through", "observer"), [("A", 0), ("A", 1), ("C", 0), ("C", 1)])
+def test_a_one_way_sighting_is_chi_square_with_two_dof_where_two_observations_put_it(
+    through: str, observer: int
+) -> None:
+    rng = np.random.default_rng(5)
+    n = 2000
+    ac, at = random_poses(rng, n, 0.8, 5.0), random_poses(rng, n, 0.8, 5.0)
+    ct = se2.compose(se2.inverse(ac), at)  # T's scanner in C's frame
+    keep = np.abs(ct[:, 0] + 1j * ct[:, 1] + D * np.exp(1j * ct[:, 2]) - D) > 0.5
+    ac, at, ct = ac[keep], at[keep], ct[keep]
+
+    def noisy(pose: np.ndarray) -> np.ndarray:
+        return measurements(pose, D) + rng.normal(size=(len(pose), 4)) * NOISE
+
+    pair, placed = (at, ct) if through == "A" else (ct, at)
+    truth = measurements(placed, D)[:, 2 * observer : 2 * observer + 2]
+    seen = truth + rng.normal(size=truth.shape) * NOISE[:2]
+    d2 = sighting_distance(noisy(ac), noisy(pair), seen, through, observer, D, SIGMA_R, SIGMA_B)  # type: ignore[arg-type]
+    assert d2.shape == (len(ac),)
+    assert np.mean(d2) == pytest.approx(2.0, rel=0.12)
+    assert np.mean(d2 > chi2.ppf(0.99, 2)) == pytest.approx(0.01, abs=0.006)
+    # The sighting half a metre off is far outside.
+    off = seen + np.array([0.5, 0.0])
+    assert np.all(
+        sighting_distance(
+            measurements(ac, D), measurements(pair, D), off, through, observer, D, SIGMA_R, SIGMA_B
+        )
+        > 100.0
+    )  # type: ignore[arg-type]
