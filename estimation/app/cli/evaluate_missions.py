@@ -34,7 +34,7 @@ def evaluate_missions(
     ] = None,
     stations: Annotated[
         int | None,
-        typer.Option("--stations", help="Station budget of each mission, 1-500 (default: 150)."),
+        typer.Option("--stations", help="Station budget of each mission, 1-500 (default: 250)."),
     ] = None,
     config: ConfigOption = None,
 ) -> None:

@@ -44,7 +44,7 @@ def test_generated_mission_places_robots_that_fit_and_see_each_other(
     assert resolve_mission_world(spec, tmp_path / "mission.yaml") == world_path
     assert spec.robot_names() == ["a", "b", "c"][:robots]
     assert (spec.seed, spec.plan, spec.auto.stations, spec.auto.scans_per_station) == (
-        seed, "auto", 150, 2,
+        seed, "auto", 250, 2,
     )  # fmt: skip
     assert spec.auto.planner == "map"  # the mission loop, on the estimated map
     assert spec.changes is not None
