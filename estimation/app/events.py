@@ -252,7 +252,9 @@ def _pair(
     relative poses, and through T they place C where the pair does (:func:`_closing`). Only
     that tells the assignments apart when the three stand nearly symmetric (building 106: b
     saw a's beacon 2.29 m away and c's 2.25 m away, 16° apart, c saw b's 2.29 m away; every
-    pairing agreed, and the estimate, after 167 untied turns, picked a's for c's, 73 cm off)."""
+    pairing agreed, and the estimate, after 167 untied turns, picked a's for c's, 73 cm off).
+    Where a detection is missing for a whole triangle, a pair whose one observation with T
+    places a one-way sighting that a sweep holds comes next (building 106, dwell 1053)."""
     if not seen_a or not seen_c:
         return None, None
     s = settings
@@ -313,21 +315,10 @@ def _closing(
         whole = [(i, j, i2, k, k2, j2) for i, j in pairs for i2, k in at if i2 != i
                  for k2, j2 in tc if k2 != k and j2 != j]  # fmt: skip
         if whole and len(whole) <= _CLOSURE_MAX:
-            z_ac, z_at, z_tc = (
-                np.array(v).reshape(-1, 4)
-                for v in zip(
-                    *(
-                        (
-                            _z(seen_a[i], seen_c[j]),
-                            _z(seen_a[i2], seen_t[k]),
-                            _z(seen_t[k2], seen_c[j2]),
-                        )
-                        for i, j, i2, k, k2, j2 in whole
-                    ),
-                    strict=True,
-                )
-            )
-            d2 = closure_distance(z_ac, z_at, z_tc, d, sr, sb)  # fmt: skip
+            z_ac = np.array([_z(seen_a[i], seen_c[j]) for i, j, *_ in whole])
+            z_at = np.array([_z(seen_a[i2], seen_t[k]) for _, _, i2, k, _, _ in whole])
+            z_tc = np.array([_z(seen_t[k2], seen_c[j2]) for *_, k2, j2 in whole])
+            d2 = closure_distance(z_ac, z_at, z_tc, d, sr, sb)
             for (i, j, *_), value in zip(whole, d2, strict=True):
                 if value <= _CLOSURE_CHI2:
                     out[i, j] = 2
