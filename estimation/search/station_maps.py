@@ -17,6 +17,8 @@ anchor and, when the next search of the same anchor asks for the same stations p
 (the views fused so far a prefix of the views wanted, their poses relative to the anchor within
 the tolerance), fuses only the new views into it: fusion is sequential, so appending in order
 gives the grid that fusing the whole list would. Any other change rebuilds the anchor's grid.
+It holds only the older stations that the graph places well against the anchor
+(:func:`placed_against`).
 
 Every fusion is counted per station (rays, seconds) in :attr:`StationMaps.work`, for the
 benchmark of per-station work against mission length (``coopmap bench stations``).
@@ -24,6 +26,7 @@ benchmark of per-station work against mission length (``coopmap bench stations``
 
 from __future__ import annotations
 
+import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
@@ -35,6 +38,7 @@ import numpy as np
 
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
+from estimation.posegraph.smoother import RelativeCovariances
 from estimation.search.exhaustive import SearchParams
 from estimation.search.registration import Cloud, RegistrationParams
 from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
@@ -57,6 +61,8 @@ __all__ = [
     "fuse_band",
     "fuse_views",
     "mutual_ties",
+    "placed_against",
+    "pose_sigmas",
     "side_by_side",
     "tied_views",
 ]
@@ -506,3 +512,29 @@ class StationMaps:
     def searched(self, station: Station, seconds: float) -> None:
         """Count a search's wall time to the station searched."""
         self._work(station.key).search_seconds += seconds
+
+
+#: An older station goes into the map a loop closure matches against only when the graph knows
+#: its pose relative to the anchor to within half the new station's uncertainty relative to the
+#: anchor, or to within these (m, rad; standard deviations) when that is more.
+_FUSE_M, _FUSE_RAD = 0.1, math.radians(0.5)
+
+
+def pose_sigmas(covariance: np.ndarray) -> tuple[float, float]:
+    """The largest position and the heading standard deviation of a pose covariance."""
+    position = float(np.linalg.eigvalsh(covariance[:2, :2])[-1])
+    return math.sqrt(max(0.0, position)), math.sqrt(max(0.0, float(covariance[2, 2])))
+
+
+def placed_against(anchor: Station, older: list[Station], sigma_m: float, sigma_rad: float,
+                   relative: RelativeCovariances) -> list[Station]:  # fmt: skip
+    """The older stations (in order) a closure anchored on ``anchor`` matches against: those
+    placed against the anchor to within half the new station's ``sigma_m`` / ``sigma_rad``, or
+    ``_FUSE_M`` / ``_FUSE_RAD``. One that shares the new station's drift lies in the anchor's
+    frame as far off as it, and the closure would measure the drift as the truth (generated
+    building 106: ten closures 3.5° off; design §7)."""
+    limit_m, limit_rad = max(_FUSE_M, 0.5 * sigma_m), max(_FUSE_RAD, 0.5 * sigma_rad)
+    covariances = relative.around(anchor.key, [s.key for s in older])
+    return [s for s, c in zip(older, covariances, strict=True)
+            if s is anchor or all(v <= w for v, w in zip(pose_sigmas(c), (limit_m, limit_rad),
+                                                         strict=True))]  # fmt: skip

@@ -40,7 +40,7 @@ from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
-from estimation.posegraph.smoother import RelativeCovariances, relative_covariances
+from estimation.posegraph.smoother import relative_covariances
 from estimation.search.correlate import correlate_all
 from estimation.search.exhaustive import (
     SearchParams,
@@ -57,6 +57,8 @@ from estimation.search.station_maps import (
     StationParams,
     View,
     mutual_ties,
+    placed_against,
+    pose_sigmas,
     side_by_side,
 )
 from mapping.band import Band
@@ -85,10 +87,6 @@ _NEIGHBOURHOOD_M = 12.0
 #: recent neighbours are already tied by mutual observations, and corridors repeat along their
 #: axis, so matching them adds false peaks rather than information.
 _MIN_AGE = 4
-#: An older station goes into the map a loop closure matches against only when the graph knows
-#: its pose relative to the anchor to within half the new station's uncertainty relative to the
-#: anchor, or to within these (m, rad; standard deviations) when that is more.
-_FUSE_M, _FUSE_RAD = 0.1, math.radians(0.5)
 #: A dominant peak becomes a factor only if it lies this close to the predicted pose.
 #: A loop-closure search covers ±``_LOOP_SIGMAS`` standard deviations of the predicted
 #: relative pose (from the graph's joint marginals), within these bounds (window side, m; yaw
@@ -454,8 +452,8 @@ def loop_closures(
             continue
         anchor = stations[_anchor(near, distance, stations, ties)]
         uncertainty = relative(anchor.key, station.key)
-        sigma_m, sigma_rad = _sigmas(uncertainty)
-        older = _known_to(anchor, [stations[k] for k in near], sigma_m, sigma_rad, relative)
+        sigma_m, sigma_rad = pose_sigmas(uncertainty)
+        older = placed_against(anchor, [stations[k] for k in near], sigma_m, sigma_rad, relative)
         local = maps.band(station, estimate, ties)
         global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:
@@ -507,33 +505,6 @@ def loop_closures(
             )
         )  # fmt: skip
     return events, records
-
-
-def _sigmas(covariance: np.ndarray) -> tuple[float, float]:
-    """The largest position and the heading standard deviation of a pose covariance."""
-    return (math.sqrt(max(0.0, float(np.linalg.eigvalsh(covariance[:2, :2])[-1]))),
-            math.sqrt(max(0.0, float(covariance[2, 2]))))  # fmt: skip
-
-
-def _known_to(anchor: Station, older: list[Station], sigma_m: float, sigma_rad: float,
-              relative: RelativeCovariances) -> list[Station]:  # fmt: skip
-    """The older stations (in order) that a loop closure anchored on ``anchor`` matches
-    against: those whose pose relative to the anchor the graph knows to within half the new
-    station's (``sigma_m``, ``sigma_rad``), or to ``_FUSE_M`` / ``_FUSE_RAD``.
-
-    The older map is fused in the anchor's frame at the estimate's relative poses. A station
-    that shares the new one's drift (the stations since an untied stretch) lies in it as far
-    off as the new one, and where it overlaps the new station most, the closure measures that
-    drift as the truth. Generated building 106 (three robots): 3.6° of heading were untied
-    between stations a135 and a157; b166's map matched a157–a169, in the map of the older
-    stations around a119 as rotated as itself, and the closure, 72.5 cm and 3.51° off, agreed
-    with nine more like it (ATE 16–17 cm). With the true poses the same search is within 0.1 cm.
-    """
-    limit_m, limit_rad = max(_FUSE_M, 0.5 * sigma_m), max(_FUSE_RAD, 0.5 * sigma_rad)
-    covariances = relative.around(anchor.key, [s.key for s in older])
-    return [s for s, c in zip(older, covariances, strict=True)
-            if s is anchor or all(v <= w for v, w in zip(_sigmas(c), (limit_m, limit_rad),
-                                                         strict=True))]  # fmt: skip
 
 
 def _closure_search(closure: _Closure, search: SearchParams) -> _Searched | None:

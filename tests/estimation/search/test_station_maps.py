@@ -26,6 +26,8 @@ from estimation.search.station_maps import (
     View,
     fuse_band,
     mutual_ties,
+    placed_against,
+    pose_sigmas,
     tied_views,
 )
 from estimation.search.station_maps import _moved_m as moved_m
@@ -440,21 +442,21 @@ def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_agains
     relative = relative_covariances(factors, estimate)
     stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
     anchor, older, new = stations[1], stations[:7], stations[7]
-    sigma_m, sigma_rad = stations_module._sigmas(relative(anchor.key, new.key))
+    sigma_m, sigma_rad = pose_sigmas(relative(anchor.key, new.key))
     assert sigma_rad > math.radians(4.0)
-    kept = stations_module._known_to(anchor, older, sigma_m, sigma_rad, relative)
+    kept = placed_against(anchor, older, sigma_m, sigma_rad, relative)
     assert kept == stations[:4]
     # A new station tied tightly to a6 still rests on the untied stretch, as a4–a6 do.
     tied = [*factors[:-1], FactorSpec("odometry", (keys[6], keys[7]), step, tight, 7)]
     relative = relative_covariances(tied, estimate)
-    assert stations_module._known_to(anchor, older, *stations_module._sigmas(
+    assert placed_against(anchor, older, *pose_sigmas(
         relative(anchor.key, new.key)), relative) == stations[:4]  # fmt: skip
     # No untied stretch: every older station lies within the floors (0.1 m, 0.5°); the anchor
     # is always matched.
     all_tight = [*factors[:1], *(dataclasses.replace(f, covariance=tight) for f in factors[1:])]
     relative = relative_covariances(all_tight, estimate)
-    assert stations_module._known_to(anchor, older, 0.0, 0.0, relative) == older
-    assert stations_module._known_to(anchor, [anchor], 0.0, 0.0, relative) == [anchor]
+    assert placed_against(anchor, older, 0.0, 0.0, relative) == older
+    assert placed_against(anchor, [anchor], 0.0, 0.0, relative) == [anchor]
 
 
 def test_relative_covariances_around_one_pose_equal_those_of_each_pair(mission) -> None:
