@@ -324,23 +324,19 @@ def _closing(
                     out[i, j] = 2
         # One observation with T, and a sighting of or by the robot not in it.
         one: list[tuple[int, int, tuple[float, ...], tuple[float, float], str, int]] = []
+        sides = (("A", [(i2, k, _z(seen_a[i2], seen_t[k])) for i2, k in at], seen_c),
+                 ("C", [(j2, k, _z(seen_c[j2], seen_t[k])) for k, j2 in tc], seen_a))  # fmt: skip
         for i, j in pairs:
-            for i2, k in at:
-                if i2 == i:
-                    continue
-                zp = _z(seen_a[i2], seen_t[k])
-                one += [(i, j, zp, (c.range_m, c.bearing_rad), "A", 0)
-                        for n, c in enumerate(seen_c) if n != j]  # fmt: skip
-                one += [(i, j, zp, (t.range_m, t.bearing_rad), "A", 1)
-                        for n, t in enumerate(seen_t) if n != k]  # fmt: skip
-            for k, j2 in tc:
-                if j2 == j:
-                    continue
-                zp = _z(seen_c[j2], seen_t[k])
-                one += [(i, j, zp, (a.range_m, a.bearing_rad), "C", 0)
-                        for n, a in enumerate(seen_a) if n != i]  # fmt: skip
-                one += [(i, j, zp, (t.range_m, t.bearing_rad), "C", 1)
-                        for n, t in enumerate(seen_t) if n != k]  # fmt: skip
+            for through, observations, seen_x in sides:
+                # The pair's detection by the robot in the observation, and by the other one.
+                own, other = (i, j) if through == "A" else (j, i)
+                for mine, k, zp in observations:
+                    if mine == own:
+                        continue
+                    one += [(i, j, zp, (x.range_m, x.bearing_rad), through, 0)
+                            for n, x in enumerate(seen_x) if n != other]  # fmt: skip
+                    one += [(i, j, zp, (t.range_m, t.bearing_rad), through, 1)
+                            for n, t in enumerate(seen_t) if n != k]  # fmt: skip
         if not one or len(one) > _CLOSURE_MAX:
             continue
         for through, observer in (("A", 0), ("A", 1), ("C", 0), ("C", 1)):
