@@ -38,7 +38,6 @@ import numpy as np
 
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.smoother import RelativeCovariances
 from estimation.search.exhaustive import SearchParams
 from estimation.search.registration import Cloud, RegistrationParams
 from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
@@ -526,15 +525,19 @@ def pose_sigmas(covariance: np.ndarray) -> tuple[float, float]:
     return math.sqrt(max(0.0, position)), math.sqrt(max(0.0, float(covariance[2, 2])))
 
 
-def placed_against(anchor: Station, older: list[Station], sigma_m: float, sigma_rad: float,
-                   relative: RelativeCovariances) -> list[Station]:  # fmt: skip
-    """The older stations (in order) a closure anchored on ``anchor`` matches against: those
-    placed against the anchor to within half the new station's ``sigma_m`` / ``sigma_rad``, or
-    ``_FUSE_M`` / ``_FUSE_RAD``. One that shares the new station's drift lies in the anchor's
-    frame as far off as it, and the closure would measure the drift as the truth (generated
-    building 106: ten closures 3.5° off; design §7)."""
+def placed_against(older: list[Station], covariances: Sequence[np.ndarray],
+                   uncertainty: np.ndarray) -> list[Station]:  # fmt: skip
+    """The older stations (in order) a loop closure matches against: those whose pose relative
+    to its anchor (``covariances``, one per station; the anchor's own is zero) is known to
+    within half the new station's (``uncertainty``), or to ``_FUSE_M`` / ``_FUSE_RAD``. One
+    that shares the new station's drift lies in the anchor's frame as far off as it, and the
+    closure would measure the drift as the truth (generated building 106: ten closures 3.5°
+    off; design §7)."""
+    sigma_m, sigma_rad = pose_sigmas(uncertainty)
     limit_m, limit_rad = max(_FUSE_M, 0.5 * sigma_m), max(_FUSE_RAD, 0.5 * sigma_rad)
-    covariances = relative.around(anchor.key, [s.key for s in older])
-    return [s for s, c in zip(older, covariances, strict=True)
-            if s is anchor or all(v <= w for v, w in zip(pose_sigmas(c), (limit_m, limit_rad),
-                                                         strict=True))]  # fmt: skip
+    kept = []
+    for station, covariance in zip(older, covariances, strict=True):
+        m, r = pose_sigmas(covariance)
+        if m <= limit_m and r <= limit_rad:
+            kept.append(station)
+    return kept

@@ -451,9 +451,11 @@ def loop_closures(
         if not len(near):
             continue
         anchor = stations[_anchor(near, distance, stations, ties)]
-        uncertainty = relative(anchor.key, station.key)
+        older = [stations[k] for k in near]
+        # The new station's and the older ones' poses against the anchor: one joint marginal.
+        uncertainty, *placed = relative.around(anchor.key, [station.key, *(s.key for s in older)])
+        older = placed_against(older, placed, uncertainty)
         sigma_m, sigma_rad = pose_sigmas(uncertainty)
-        older = placed_against(anchor, [stations[k] for k in near], sigma_m, sigma_rad, relative)
         local = maps.band(station, estimate, ties)
         global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:

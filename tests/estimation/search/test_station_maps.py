@@ -13,7 +13,7 @@ from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.smoother import relative_covariances
+from estimation.posegraph.smoother import RelativeCovariances, relative_covariances
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
@@ -442,21 +442,23 @@ def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_agains
     relative = relative_covariances(factors, estimate)
     stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
     anchor, older, new = stations[1], stations[:7], stations[7]
-    sigma_m, sigma_rad = pose_sigmas(relative(anchor.key, new.key))
-    assert sigma_rad > math.radians(4.0)
-    kept = placed_against(anchor, older, sigma_m, sigma_rad, relative)
-    assert kept == stations[:4]
+
+    def kept(relative: RelativeCovariances, of: list[Station] = older) -> list[Station]:
+        uncertainty, *placed = relative.around(anchor.key, [new.key, *(s.key for s in of)])
+        return placed_against(of, placed, uncertainty)
+
+    assert pose_sigmas(relative(anchor.key, new.key))[1] > math.radians(4.0)
+    assert kept(relative) == stations[:4]
     # A new station tied tightly to a6 still rests on the untied stretch, as a4–a6 do.
     tied = [*factors[:-1], FactorSpec("odometry", (keys[6], keys[7]), step, tight, 7)]
-    relative = relative_covariances(tied, estimate)
-    assert placed_against(anchor, older, *pose_sigmas(
-        relative(anchor.key, new.key)), relative) == stations[:4]  # fmt: skip
+    assert kept(relative_covariances(tied, estimate)) == stations[:4]
     # No untied stretch: every older station lies within the floors (0.1 m, 0.5°); the anchor
-    # is always matched.
+    # (its own covariance zero) is always matched.
     all_tight = [*factors[:1], *(dataclasses.replace(f, covariance=tight) for f in factors[1:])]
     relative = relative_covariances(all_tight, estimate)
-    assert placed_against(anchor, older, 0.0, 0.0, relative) == older
-    assert placed_against(anchor, [anchor], 0.0, 0.0, relative) == [anchor]
+    zero = np.zeros((3, 3))
+    assert placed_against(older, relative.around(anchor.key, [s.key for s in older]), zero) == older
+    assert placed_against([anchor], [zero], zero) == [anchor]
 
 
 def test_relative_covariances_around_one_pose_equal_those_of_each_pair(mission) -> None:
