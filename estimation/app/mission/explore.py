@@ -7,7 +7,8 @@ The explorer keeps the leapfrog of the paper: the reference turns in place to th
 which it and a mapper around it see the most unknown space on the way to the nearest reachable
 frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
 so that both beacons are in view, that add the most unknown space and bring the pair closer to
-that frontier, less a cost for the path. Poses already taken are not taken again; a frontier
+that frontier, less a cost for the path. A frontier no path reaches (floor glimpsed through a
+doorway) is approached as the drivable floor from which it is in sight. Poses already taken are not taken again; a frontier
 the pair has failed to shrink from several stations in a row is given up. Once no frontier is
 left, the pair goes into the rooms of the estimated map that no robot stood in (a room seen
 whole through its doors has no frontier), nearest first, as it would to a frontier.
@@ -28,6 +29,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage
 
 from estimation.app.config import Config
 from estimation.app.mission.view import MIN_UNKNOWN_M2, MapView
@@ -58,6 +60,10 @@ _SAME_TARGET_M = 1.5
 #: A frontier counts when it has this many cells and borders at least ``MIN_UNKNOWN_M2`` of
 #: unknown floor (a doorway onto a room nobody has seen, not the shadow of a desk).
 _MIN_FRONTIER_CELLS = 5
+#: A frontier the robots cannot drive to (floor seen through a doorway at a glancing angle: a
+#: sliver of free floor, drivable only in a patch cut off from the doorway by what nobody saw)
+#: is looked at from the drivable floor within this distance (m) of it, over known free floor.
+_LOOK_M = 2.0
 #: A turn is tied in parts of at most this much (a pivot pose must lie 15–45° off the heading
 #: before and after its part), in at most this many parts; each pivot the mapper drives to costs
 #: this much (cells) when the heading is chosen (a move and a dwell of some 35 s).
@@ -110,27 +116,64 @@ class _Target:
 
 def _reachable_targets(view: MapView, from_xy: list[np.ndarray],
                        given_up: list[np.ndarray]) -> list[tuple[Target, float]]:  # fmt: skip
-    """The frontiers reachable from any of ``from_xy``, each with its path distance (m); when
-    each of them is among ``given_up`` (or none is left), the unvisited rooms too."""
+    """The frontiers reachable from any of ``from_xy``, each with its path distance (m), and
+    those no path reaches as the floor they are looked at from (:func:`_looked_at`); when each
+    of them is among ``given_up`` (or none is left), the unvisited rooms too."""
     starts = [p for p in (view.free_near(xy) for xy in from_xy) if p is not None]
     if not starts:
         return []
     reach = view.distances_from(starts)
-    found: list[Target] = list(frontiers(
+    found = frontiers(
         view.floor, view.space, robot_radius_m=view.radius_m,
         min_cells=_MIN_FRONTIER_CELLS, min_unknown_m2=MIN_UNKNOWN_M2,
-    ))  # fmt: skip
+    )  # fmt: skip
     out: list[tuple[Target, float]] = []
-    for target in found:
-        d = float(np.min(reach[target.cells[:, 0], target.cells[:, 1]]))
-        if np.isfinite(d):
-            out.append((target, d))
+    for frontier in found:
+        target: Target = frontier
+        d = float(np.min(reach[frontier.cells[:, 0], frontier.cells[:, 1]]))
+        if not np.isfinite(d):
+            looked = _looked_at(view, frontier, reach)
+            if looked is None:
+                continue
+            target, d = looked, float(np.min(reach[looked.cells[:, 0], looked.cells[:, 1]]))
+        out.append((target, d))
     if all(_among(target, given_up) for target, _ in out):
         for room in view.rooms():
             d = float(np.min(reach[room.cells[:, 0], room.cells[:, 1]]))
             if np.isfinite(d):
                 out.append((room, d))
     return out
+
+
+def _looked_at(view: MapView, frontier: Frontier, reach: np.ndarray) -> Frontier | None:
+    """A frontier no path reaches, as the reachable drivable cells (finite ``reach``) within
+    ``_LOOK_M`` of it from which its nearest cell is in sight over known free floor (centroid and
+    size its own); None without such a cell.
+
+    Generated building 10 stalled with two rooms unentered: the one room behind the other's
+    door had been seen only through that door at a glancing angle from the corridor, a sliver of
+    free floor whose drivable patch was cut off from the doorway by unseen floor. No path led to
+    its frontier, so it was never a target, though a look from the doorway shows the room."""
+    floor, res = view.floor, view.floor.resolution_m
+    h, w = floor.shape
+    k = math.ceil(_LOOK_M / res)
+    r0, c0 = np.maximum(frontier.cells.min(axis=0) - k, 0)
+    r1, c1 = np.minimum(frontier.cells.max(axis=0) + k + 1, (h, w))
+    away = np.ones((r1 - r0, c1 - c0), dtype=bool)
+    away[frontier.cells[:, 0] - r0, frontier.cells[:, 1] - c0] = False
+    distance, (rows, cols) = ndimage.distance_transform_edt(away, return_indices=True)
+    near = np.isfinite(reach[r0:r1, c0:c1]) & (distance * res <= _LOOK_M)
+    if not near.any():
+        return None
+    start = np.argwhere(near).astype(float)
+    end = np.column_stack([rows[near], cols[near]]).astype(float)
+    t = np.linspace(0.0, 1.0, 2 * k + 1)[None, :, None]
+    line = np.rint(start[:, None, :] + t * (end - start)[:, None, :]).astype(np.int64)
+    seen = floor.free[r0:r1, c0:c1][line[..., 0], line[..., 1]].all(axis=1)
+    if not seen.any():
+        return None
+    cells = start[seen].astype(np.int64) + np.array([r0, c0])
+    return Frontier(cells, frontier.centroid_xy, frontier.size)
 
 
 def _in_the_way(a: np.ndarray, b: np.ndarray, robots: list[np.ndarray],

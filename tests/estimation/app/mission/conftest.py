@@ -59,3 +59,22 @@ def seen_whole() -> OccupancyGrid:
     params = GridParams(resolution_m=RES)
     return OccupancyGrid.from_cells(params, cells, np.where(wall, params.logodds_max,
                                                             params.logodds_min))  # fmt: skip
+
+
+def glimpsed(door: bool = True) -> OccupancyGrid:
+    """Rooms A (x 0-4 m) and B (x 4.1-8 m), 4 m deep under a 2.5 m ceiling, joined by a 1.2 m
+    door (y 1.4-2.6 m, 2.1 m high; with ``door`` False, a window above 0.9 m instead). Room A
+    is seen whole; of room B only the first 0.3 m behind the wall and a narrow fan of rays from
+    (1, 0.5) through the opening: a sliver of free floor, drivable only far from the opening."""
+    i, j, k = np.meshgrid(np.arange(-1, 81), np.arange(-1, 41), np.arange(25), indexing="ij")
+    cells = np.column_stack([i.ravel(), j.ravel(), k.ravel()])
+    x, y, z = ((cells + 0.5) * RES).T
+    wall = (cells[:, 0] == -1) | (cells[:, 0] == 80) | (cells[:, 1] == -1) | (cells[:, 1] == 40)
+    opening = (y > 1.4) & (y < 2.6) & ((z < 2.1) if door else (z > 0.9) & (z < 2.1))
+    wall |= (cells[:, 0] == 40) & ~opening
+    bearing = np.arctan2(y - 0.5, x - 1.0)
+    fan = (bearing > np.arctan2(1.3, 3.0)) & (bearing < np.arctan2(1.75, 3.0))
+    unseen = (cells[:, 0] > 43) & (cells[:, 0] < 80) & ~fan
+    params = GridParams(resolution_m=RES)
+    values = np.where(wall, params.logodds_max, params.logodds_min)
+    return OccupancyGrid.from_cells(params, cells[~unseen], values[~unseen])

@@ -14,6 +14,7 @@ from estimation.app.mission.view import MapView
 from mapping.traversability import Frontier
 from tests.estimation.app.mission.conftest import (
     CONFIG,
+    glimpsed,
     seen_whole,
 )
 
@@ -363,3 +364,60 @@ def test_once_no_frontier_is_left_the_pair_goes_into_the_rooms_nobody_stood_in()
         assert offered is not None
         assert not isinstance(offered, Frontier)
         assert explorer.abandon(view, robots)  # the room was never tried
+
+
+def test_a_frontier_seen_only_through_a_doorway_is_looked_at_from_the_drivable_floor() -> None:
+    robots = [np.array([1.0, 0.5]), np.array([2.0, 3.0])]
+    view = MapView(glimpsed(), CONFIG, np.array(robots))
+    reach = view.distances_from(robots)
+    res = view.floor.resolution_m
+    found = explore.frontiers(view.floor, view.space, robot_radius_m=view.radius_m,
+                              min_cells=5, min_unknown_m2=explore.MIN_UNKNOWN_M2)  # fmt: skip
+    (far,) = [f for f in found if f.centroid_xy[0] > 5.0]  # at the far end of the sliver
+    assert not np.isfinite(reach[far.cells[:, 0], far.cells[:, 1]]).any()  # no path there
+    targets = {round(float(t.centroid_xy[0]), 2): (t, d)
+               for t, d in explore._reachable_targets(view, robots, [])}  # fmt: skip
+    looked, distance = targets[round(float(far.centroid_xy[0]), 2)]
+    assert isinstance(looked, Frontier)
+    np.testing.assert_allclose(looked.centroid_xy, far.centroid_xy)
+    assert looked.size == far.size
+    # From the drivable floor of room A and its doorway, within 2 m, over free floor.
+    xy = view.floor.lower_xy + (looked.cells[:, ::-1] + 0.5) * res
+    assert np.isfinite(reach[looked.cells[:, 0], looked.cells[:, 1]]).all()
+    assert (xy[:, 0] < 4.5).all()
+    assert (xy[:, 0] > 2.0).all()
+    assert np.abs(xy[:, 1] - 2.0).max() < 1.0  # in front of the door
+    far_xy = view.floor.lower_xy + (far.cells[:, ::-1] + 0.5) * res
+    gap = np.hypot(*(xy[:, None, :] - far_xy[None, :, :]).transpose(2, 0, 1)).min(axis=1)
+    assert gap.max() <= explore._LOOK_M + 1e-9
+    assert distance == pytest.approx(float(reach[looked.cells[:, 0], looked.cells[:, 1]].min()))
+    assert 1.0 < distance < 3.0
+    # The pair heads for it once the doorway's own frontier is given up.
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    near = [t.centroid_xy for t, _ in targets.values() if t.centroid_xy[0] < 5.0]
+    explorer.given_up.extend(np.array(c) for c in near)
+    chosen = explorer.frontier(view, robots)
+    assert chosen is not None
+    np.testing.assert_allclose(chosen.centroid_xy, far.centroid_xy)
+    assert len(chosen.cells) == len(looked.cells)
+
+
+def test_a_frontier_seen_through_a_window_is_not_looked_at() -> None:
+    robots = [np.array([1.0, 0.5]), np.array([2.0, 3.0])]
+    view = MapView(glimpsed(door=False), CONFIG, np.array(robots))
+    found = explore.frontiers(view.floor, view.space, robot_radius_m=view.radius_m,
+                              min_cells=5, min_unknown_m2=explore.MIN_UNKNOWN_M2)  # fmt: skip
+    assert any(f.centroid_xy[0] > 5.0 for f in found)  # the sliver's frontier is there
+    assert explore._reachable_targets(view, robots, []) == []  # the wall hides it
+    assert Explorer(CONFIG, (1.5, 4.5)).frontier(view, robots) is None
+
+
+def test_a_frontier_beyond_the_look_distance_is_not_looked_at(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    robots = [np.array([1.0, 0.5]), np.array([2.0, 3.0])]
+    view = MapView(glimpsed(), CONFIG, np.array(robots))
+    monkeypatch.setattr(explore, "_LOOK_M", 0.5)  # the sliver's drivable end is farther
+    targets = explore._reachable_targets(view, robots, [])
+    assert targets  # the doorway's own frontier
+    assert all(t.centroid_xy[0] < 5.0 for t, _ in targets)
