@@ -92,11 +92,16 @@ def floor_map(
     max_gap_m2: float = 0.05,
     lower_xy: np.ndarray | tuple[float, float] | None = None,
     upper_xy: np.ndarray | tuple[float, float] | None = None,
+    ground_z_m: tuple[float, float] | None = None,
 ) -> FloorMap:
     """The floor columns of ``grid`` between the heights ``body_z_m`` (above the floor cells
     themselves, up to the robot's top); a column is free when at least ``free_min_observed`` of
     its layers were seen and none is occupied. Unseen patches of at most ``max_gap_m2`` inside
     free floor (not at an obstacle or the border) are gaps between rays and count as free.
+    With ``ground_z_m`` (the floor's own layers), a column whose floor was seen is free too
+    unless a layer of the band is occupied: a ray that reaches the floor steeply (over a desk,
+    down the far end of a corridor) crosses each layer of the band in another column, so such
+    columns hold fewer seen layers than ``free_min_observed`` though nothing stands there.
     MapError when the band holds nothing seen."""
     band: Band = extract_band(
         grid, body_z_m[0], body_z_m[1], free_min_observed=free_min_observed,
@@ -104,6 +109,14 @@ def floor_map(
     )  # fmt: skip
     obstacle = band.known & (band.occupancy > 0.0)
     free = band.known & ~obstacle
+    if ground_z_m is not None:
+        rows, cols = obstacle.shape
+        half = band.resolution_m / 2
+        ground = extract_band(
+            grid, ground_z_m[0], ground_z_m[1], lower_xy=band.lower_xy + half,
+            upper_xy=band.lower_xy + np.array([cols, rows]) * band.resolution_m - half,
+        )  # fmt: skip
+        free |= ground.known & ~obstacle
     # Far from the scanner, rays thin out: single unseen columns between seen-free ones are
     # gaps in the sampling, not unexplored space (they would make frontiers everywhere).
     res = band.resolution_m

@@ -404,3 +404,36 @@ def test_a_segment_beyond_the_addressable_map_is_an_error(grid: OccupancyGrid) -
     with pytest.raises(MapError, match="finite"):
         grid.segment_blocked(np.zeros(3), np.array([np.inf, 0, 0]), unknown_blocks=True,
                              ignore_xy=np.zeros((0, 2)), ignore_radius_m=0.0)  # fmt: skip
+
+
+def test_a_column_whose_floor_was_seen_is_free_unless_the_band_holds_an_obstacle() -> None:
+    # Columns x 0-2 m: the floor layer seen (hit) and one of the body band's three layers seen
+    # free, as a steep ray crossing them leaves them; at x 1.0-1.2 m a layer is occupied; at
+    # x 2-3 m neither floor nor band was seen.
+    params = GridParams(resolution_m=0.1, origin_m=(0.0, 0.0, 0.0))
+    i, j = np.meshgrid(np.arange(30), np.arange(10), indexing="ij")
+    i, j = i.ravel(), j.ravel()
+    seen = i < 20
+    floor_cells = np.column_stack([i[seen], j[seen], np.zeros(seen.sum(), dtype=np.int64)])
+    band_layer = np.column_stack([i[seen], j[seen], np.full(seen.sum(), 2, dtype=np.int64)])
+    cells = np.vstack([floor_cells, band_layer])
+    values = np.concatenate([np.full(len(floor_cells), params.logodds_max),
+                             np.full(len(band_layer), params.logodds_min)])  # fmt: skip
+    post = (cells[:, 2] == 2) & (cells[:, 0] >= 10) & (cells[:, 0] < 12)
+    values[post] = params.logodds_max
+    grid = OccupancyGrid.from_cells(params, cells, values)
+    box = {"lower_xy": (0.05, 0.05), "upper_xy": (2.95, 0.95)}
+    body = floor_map(grid, body_z_m=(0.1, 0.4), **box)
+    with_ground = floor_map(grid, body_z_m=(0.1, 0.4), ground_z_m=(-0.1, 0.1), **box)
+    x = with_ground.lower_xy[0] + (np.arange(with_ground.shape[1]) + 0.5) * 0.1
+    steep, post_x, unseen = (x < 1.0) | ((x > 1.2) & (x < 2.0)), (x > 1.0) & (x < 1.2), x > 2.0
+    assert body.unknown[:, steep].all()  # one layer of three seen: unknown without the floor
+    assert with_ground.free[:, steep].all()
+    assert with_ground.obstacle[:, post_x].all()
+    assert body.obstacle[:, post_x].all()
+    assert with_ground.unknown[:, unseen].all()  # neither the floor nor the band seen
+    np.testing.assert_array_equal(with_ground.obstacle, body.obstacle)
+    # The default bounding box (no rectangle given) covers the same columns.
+    default = floor_map(grid, body_z_m=(0.1, 0.4), ground_z_m=(-0.1, 0.1))
+    assert default.shape == (10, 20)
+    assert default.free.sum() == with_ground.free[:, x < 2.0].sum()

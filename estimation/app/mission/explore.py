@@ -8,8 +8,9 @@ which it and a mapper around it see the most unknown space on the way to the nea
 frontier; the mapper then takes the scan poses, in the reference's front sectors and facing it
 so that both beacons are in view, that add the most unknown space and bring the pair closer to
 that frontier, less a cost for the path. A frontier no path reaches (floor glimpsed through a
-doorway) is approached as the drivable floor from which it is in sight. Poses already taken are not taken again; a frontier
-the pair has failed to shrink from several stations in a row is given up. Once no frontier is
+doorway) is approached as the drivable floor from which it is in sight. Poses already taken
+are not taken again; a frontier the pair has failed to shrink from several stations in a row
+is given up. Once no frontier is
 left, the pair goes into the rooms of the estimated map that no robot stood in (a room seen
 whole through its doors has no frontier), nearest first, as it would to a frontier.
 
@@ -276,12 +277,25 @@ class Explorer:
 
     def abandon(self, view: MapView, from_xy: list[np.ndarray]) -> bool:
         """Exploration stalled: give up the target and say whether a reachable frontier is left
-        that was never given up (the one :meth:`frontier` will then pick)."""
+        that was never given up (the one :meth:`frontier` will then pick), or, when none is, a
+        given-up one that was never tried again: then every given-up frontier is tried once
+        more (:meth:`frontier` does so too, but only once no room nobody stood in is left;
+        generated building 17 stalled on a room it could not enter while the frontier at a
+        door it had given up early was never tried again)."""
+        abandoned = []
         if self.target is not None:
-            self.given_up.append(self.target.centroid.copy())
+            abandoned = [self.target.centroid.copy()]
+            self.given_up += abandoned
             self.target = None
         tried = [*self.given_up, *self.retried]
-        return any(not _among(f, tried) for f, _ in _reachable_targets(view, from_xy, tried))
+        left = [f for f, _ in _reachable_targets(view, from_xy, tried)]
+        if any(not _among(f, tried) for f in left):
+            return True
+        again = self.given_up[: len(self.given_up) - len(abandoned)]  # not the one just left
+        if self.retried or not any(_among(f, again) for f in left):
+            return False
+        self.retried, self.given_up = again, abandoned
+        return True
 
     def progress(self, frontier: Target | None, distance_m: float, view: MapView) -> None:
         """Track the target frontier across stations; give it up when it stops yielding: the
@@ -295,11 +309,15 @@ class Explorer:
         if t is None or math.dist(t.centroid, frontier.centroid_xy) > _SAME_TARGET_M:
             self.target = _Target(frontier.centroid_xy.copy(), distance_m, known)
             return
-        if distance_m < t.best_m - _PROGRESS_M or known >= t.known_m2 + _PROGRESS_M2:
+        # The floor known around where the target was at the last station, then and now: as a
+        # corridor is mapped its frontier moves on, and less is known around the new place.
+        moved = not np.array_equal(t.centroid, frontier.centroid_xy)
+        before = _known_near(view, t.centroid) if moved else known
+        if distance_m < t.best_m - _PROGRESS_M or before >= t.known_m2 + _PROGRESS_M2:
             t.stale = 0
         else:
             t.stale += 1
-        t.best_m, t.known_m2 = min(t.best_m, distance_m), max(t.known_m2, known)
+        t.best_m, t.known_m2 = min(t.best_m, distance_m), known
         t.centroid = frontier.centroid_xy.copy()
         if t.stale >= _PATIENCE:
             self.given_up.append(t.centroid.copy())

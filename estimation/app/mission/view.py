@@ -41,6 +41,11 @@ _ROOM_LEVEL_M, _ROOM_PERSISTENCE_M, _ROOM_M2 = 0.9, 0.2, 2.0
 #: Where a robot found its way blocked, an obstacle of this radius (m): what blocked it lies
 #: within the robot's radius of that point, so the planner keeps its radius and margin off it.
 _BLOCKED_M = 0.1
+#: The floor's own layers (m): a column whose floor was seen, with nothing in the body band, is
+#: free (``mapping.traversability.floor_map``). Generated building 17 ended with the last 2.4 m
+#: of its corridor "unknown" (its floor seen, the body band only by rays reaching it steeply),
+#: and the room whose door lay there never entered.
+_GROUND_M = (-0.1, 0.1)
 #: Unknown floor added around the known map, m.
 _BORDER_M = 1.0
 #: Path-distance fields a view keeps (about 1 MB each on a 40 m × 30 m floor).
@@ -74,7 +79,7 @@ class MapView:
         low, high = grid.bounds_cells()
         res = grid.resolution_m
         floor = floor_map(
-            grid, body_z_m=(0.1, robot.body_height_m),
+            grid, body_z_m=(0.1, robot.body_height_m), ground_z_m=_GROUND_M,
             lower_xy=grid.origin_m[:2] + low[:2] * res - _BORDER_M,
             upper_xy=grid.origin_m[:2] + (high[:2] + 1) * res + _BORDER_M,
         )  # fmt: skip

@@ -421,3 +421,54 @@ def test_a_frontier_beyond_the_look_distance_is_not_looked_at(
     targets = explore._reachable_targets(view, robots, [])
     assert targets  # the doorway's own frontier
     assert all(t.centroid_xy[0] < 5.0 for t, _ in targets)
+
+
+def test_a_stalled_exploration_tries_each_given_up_frontier_once_more_but_not_the_last(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, far])
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    robots = [np.array([1.0, 1.0])]
+    explorer.given_up.append(far.centroid_xy.copy())  # given up early on
+    explorer.progress(near, 0.5, view)  # the target when the loop stalls
+    assert explorer.abandon(view, robots)  # far is tried once more
+    np.testing.assert_allclose(explorer.retried, [far.centroid_xy])
+    np.testing.assert_allclose(explorer.given_up, [near.centroid_xy])  # not the one just left
+    chosen = explorer.frontier(view, robots)
+    assert chosen is far
+    explorer.progress(far, 4.0, view)
+    assert not explorer.abandon(view, robots)  # every frontier tried twice: exploring ends
+    # Nothing given up that is still there: nothing to try again.
+    fresh = Explorer(CONFIG, (1.5, 4.5))
+    fresh.given_up.append(np.array([30.0, 30.0]))
+    fresh.progress(near, 0.5, view)
+    fresh.progress(far, 4.0, view)  # a new target; near is not given up
+    fresh.retried.append(near.centroid_xy.copy())
+    assert not fresh.abandon(view, robots)  # far just left; near tried again already
+
+
+def test_progress_is_the_floor_known_around_where_the_frontier_was(
+    view: MapView, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A corridor mapped station by station: its frontier moves on by a metre each time, and
+    # around each new place less is known than around the last; the robots come no nearer.
+    known = {}
+
+    def known_near(_view: MapView, xy: np.ndarray) -> float:
+        return known[round(float(xy[0]), 1)]
+
+    monkeypatch.setattr(explore, "_known_near", known_near)
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    for station in range(4 * explore._PATIENCE):
+        x = 1.0 + station
+        known[round(x - 1.0, 1)] = 12.0  # where it was: mapped since
+        known[round(x, 1)] = 6.0  # where it is now: half unknown
+        explorer.progress(frontier_at(x, 2.0), 3.0, view)
+        assert explorer.target is not None
+        assert explorer.target.stale == 0
+    # The frontier stays where it is and nothing more is seen there: given up.
+    for stale in range(1, explore._PATIENCE + 1):
+        explorer.progress(frontier_at(x, 2.0), 3.0, view)
+        assert (explorer.target is None) == (stale == explore._PATIENCE)
+    assert len(explorer.given_up) == 1
