@@ -386,12 +386,16 @@ class OccupancyGrid:
         unknown_blocks: bool,
         ignore_xy: np.ndarray,
         ignore_radius_m: float,
+        unknown_gap_cells: int = 0,
     ) -> bool:
         """Whether a cell that the segment ``start`` → ``end`` (cell units, as
         ``mapping.kernels.traversal.ray_cells`` takes them; the end cell included) visits is
-        occupied or, with ``unknown_blocks``, unknown; cells whose centre lies within
+        occupied or, with ``unknown_blocks``, unknown in a run of more than
+        ``unknown_gap_cells`` unknown cells in a row; cells whose centre lies within
         ``ignore_radius_m`` of a point of ``ignore_xy`` (N, 2; metres) in the plane are not
         tested."""
+        if unknown_gap_cells < 0:
+            raise MapError(f"unknown_gap_cells must be >= 0, got {unknown_gap_cells}")
         ends = np.floor(np.stack([np.asarray(start, float), np.asarray(end, float)]))
         if ends.shape != (2, 3) or not np.isfinite(ends).all():
             raise MapError(f"a segment needs two finite 3D end points, got {start} and {end}")
@@ -403,7 +407,8 @@ class OccupancyGrid:
                 np.asarray(start, np.float64), np.asarray(end, np.float64),
                 self.origin_m, self.resolution_m,
                 np.ascontiguousarray(ignore_xy, dtype=np.float64).reshape(-1, 2),
-                float(ignore_radius_m), bool(unknown_blocks), self.params.logodds_threshold,
+                float(ignore_radius_m), bool(unknown_blocks), int(unknown_gap_cells),
+                self.params.logodds_threshold,
                 store.table[0], store.table[1], store.shift, store.logodds, store.known,
                 store.lut, self.params.block_size_cells,
             )

@@ -305,9 +305,12 @@ def line_of_sight(
     unknown_blocks: bool = True,
     ignore_xy: np.ndarray | None = None,
     ignore_radius_m: float = 0.0,
+    unknown_gap_m: float = 0.0,
 ) -> bool:
     """Whether the segment start → end (map frame, metres) crosses no occupied cell of the
-    estimated map, nor (with ``unknown_blocks``) a cell nobody has seen; the first
+    estimated map, nor (with ``unknown_blocks``) a cell nobody has seen, except in runs of
+    unknown cells no longer than ``unknown_gap_m`` (cells, rounded down: gaps between rays that
+    a wall does not leave, for the space behind a wall is unseen too); the first
     ``start_clearance_m`` and the last ``end_clearance_m`` (the observer's own body, the target
     itself, e.g. a beacon's cylinder) are not tested, nor cells within ``ignore_radius_m`` (in
     the plane) of the points ``ignore_xy`` (N, 2) — where robots stood, whose bodies other
@@ -317,7 +320,8 @@ def line_of_sight(
     if not (np.isfinite(start).all() and np.isfinite(end).all()):
         raise MapError(f"line of sight needs finite end points, got {start} and {end}")
     for name, value in (("start_clearance_m", start_clearance_m),
-                        ("end_clearance_m", end_clearance_m)):  # fmt: skip
+                        ("end_clearance_m", end_clearance_m),
+                        ("unknown_gap_m", unknown_gap_m)):  # fmt: skip
         if not (math.isfinite(value) and value >= 0):
             raise MapError(f"line of sight: {name} must be finite and >= 0, got {value}")
     if (
@@ -340,6 +344,7 @@ def line_of_sight(
     return not grid.segment_blocked(
         (first - origin) / res, (stop - origin) / res, unknown_blocks=unknown_blocks,
         ignore_xy=ignore, ignore_radius_m=ignore_radius_m if len(ignore) else 0.0,
+        unknown_gap_cells=math.floor(unknown_gap_m / res + 1e-9),
     )  # fmt: skip
 
 

@@ -268,6 +268,7 @@ def segment_blocked(
     ignore_xy: np.ndarray,
     ignore_radius: float,
     unknown_blocks: bool,
+    unknown_gap: int,
     threshold: float,
     table_keys: np.ndarray,
     table_vals: np.ndarray,
@@ -278,12 +279,14 @@ def segment_blocked(
     bs: int,
 ) -> bool:
     """Whether a cell the segment ``start`` → ``end`` (cell units, end cell included) visits
-    is occupied (log-odds above ``threshold``) or, with ``unknown_blocks``, unknown; cells
-    whose centre lies within ``ignore_radius`` (in the plane) of a point of ``ignore_xy``
-    (N, 2; grid frame, metres) are not tested. The cells are ``ray_cells``'s."""
+    is occupied (log-odds above ``threshold``) or, with ``unknown_blocks``, unknown in a run of
+    more than ``unknown_gap`` unknown cells in a row; cells whose centre lies within
+    ``ignore_radius`` (in the plane) of a point of ``ignore_xy`` (N, 2; grid frame, metres) are
+    not tested (nor do they end a run). The cells are ``ray_cells``'s."""
     cells = ray_cells(start, end, True)
     last_key = EMPTY_KEY
     blk = -1
+    run = 0
     for n in range(len(cells)):
         if ignore_radius > 0:
             cx = origin[0] + (cells[n, 0] + 0.5) * resolution
@@ -299,8 +302,11 @@ def segment_blocked(
                                        table_keys, table_vals, shift, logodds, known, lut,
                                        bs)  # fmt: skip
         if math.isnan(value):
-            if unknown_blocks:
+            run += 1
+            if unknown_blocks and run > unknown_gap:
                 return True
-        elif value > threshold:
+            continue
+        run = 0
+        if value > threshold:
             return True
     return False

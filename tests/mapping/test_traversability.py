@@ -437,3 +437,47 @@ def test_a_column_whose_floor_was_seen_is_free_unless_the_band_holds_an_obstacle
     default = floor_map(grid, body_z_m=(0.1, 0.4), ground_z_m=(-0.1, 0.1))
     assert default.shape == (10, 20)
     assert default.free.sum() == with_ground.free[:, x < 2.0].sum()
+
+
+def holed_slab(unknown_x: list[float], occupied_x: tuple[float, ...] = ()) -> OccupancyGrid:
+    """:func:`slab_grid` with the cells at x in ``unknown_x`` (row y = 1.05 m) never seen."""
+    grid = slab_grid([(x, 1.05) for x in occupied_x])
+    cells, values = grid.cells()
+    keep = np.ones(len(cells), dtype=bool)
+    for x in unknown_x:
+        keep &= ~((cells[:, 0] == math.floor(x / RES)) & (cells[:, 1] == 10))
+    return OccupancyGrid.from_cells(grid.params, cells[keep], values[keep])
+
+
+@pytest.mark.parametrize(
+    ("unknown_x", "gap_m", "clear"),
+    [
+        ([2.05], 0.0, False),  # any unseen cell blocks
+        ([2.05], 0.1, True),  # a gap of one cell between rays
+        ([2.05, 2.15], 0.1, False),
+        ([2.05, 2.15], 0.2, True),
+        ([2.05, 2.15, 2.25], 0.2, False),  # three in a row: more than a gap
+        ([2.05, 2.15, 3.05, 3.15], 0.2, True),  # runs count apart
+        ([0.65], 0.2, True),  # next to the start
+        ([4.65, 4.75], 0.2, True),  # at the end
+    ],
+)
+def test_a_line_of_sight_passes_runs_of_unknown_cells_up_to_the_gap(
+    unknown_x: list[float], gap_m: float, clear: bool
+) -> None:
+    grid = holed_slab(unknown_x)
+    assert line_of_sight(grid, A, B, end_clearance_m=0.0, unknown_gap_m=gap_m) is clear
+    assert line_of_sight(grid, A, B, end_clearance_m=0.0, unknown_blocks=False)
+
+
+def test_a_gap_of_unknown_cells_never_lets_an_occupied_cell_through() -> None:
+    grid = holed_slab([2.05], occupied_x=(2.15,))
+    assert not line_of_sight(grid, A, B, end_clearance_m=0.0, unknown_gap_m=0.5)
+    assert not line_of_sight(grid, A, B, end_clearance_m=0.0, unknown_blocks=False)
+    with pytest.raises(MapError, match="unknown_gap_m"):
+        line_of_sight(grid, A, B, unknown_gap_m=-0.1)
+    with pytest.raises(MapError, match="unknown_gap_m"):
+        line_of_sight(grid, A, B, unknown_gap_m=math.nan)
+    with pytest.raises(MapError, match="unknown_gap_cells"):
+        grid.segment_blocked(A / RES, B / RES, unknown_blocks=True, ignore_xy=np.zeros((0, 2)),
+                             ignore_radius_m=0.0, unknown_gap_cells=-1)  # fmt: skip
