@@ -220,3 +220,25 @@ def test_path_distances_from_the_same_cells_are_computed_once(view: MapView) -> 
         first[0, 0] = 0.0
     nowhere = view.distances_from([np.array([1e3, 1e3])])
     assert np.isinf(nowhere).all()
+
+
+def test_the_view_counts_floor_seen_steeply_as_free_and_passes_sight_gaps() -> None:
+    # Room A of ``seen_whole``; in x 1-2 m the floor seen but not the body band (rays reaching
+    # the floor steeply cross its layers in other columns), and one unseen cell at the height
+    # of a beacon's line.
+    grid = seen_whole()
+    cells, values = grid.cells()
+    x = (cells[:, 0] + 0.5) * RES
+    z = (cells[:, 2] + 0.5) * RES
+    steep = (x > 1.0) & (x < 2.0) & (z > 0.1) & (z < 0.3)  # the body band's two layers
+    hole = (cells == (30, 20, 8)).all(axis=1)  # x 3.0-3.1, y 2.0-2.1, z 0.8-0.9
+    keep = ~(steep | hole)
+    view = MapView(OccupancyGrid.from_cells(grid.params, cells[keep], values[keep]), CONFIG)
+    for xy in ((1.3, 1.0), (1.7, 3.0)):
+        assert view.floor.free[view.space.cell(xy)]
+    start, end = np.array([2.0, 2.05, 0.5]), np.array([3.9, 2.05, 1.2])  # crosses the hole
+    assert view._clear(start, end)
+    wider = keep & ~((cells[:, 0] >= 29) & (cells[:, 0] <= 31) & (cells[:, 1] == 20)
+                     & (cells[:, 2] >= 7) & (cells[:, 2] <= 9))  # fmt: skip
+    closed = MapView(OccupancyGrid.from_cells(grid.params, cells[wider], values[wider]), CONFIG)
+    assert not closed._clear(start, end)
