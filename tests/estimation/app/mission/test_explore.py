@@ -63,6 +63,17 @@ def cells_at(view: MapView, x: float, y: float) -> Frontier:
     return Frontier(cells, np.array([x, y]), 5)
 
 
+def two_frontiers(
+    view: MapView, monkeypatch: pytest.MonkeyPatch, far_first: bool = False
+) -> tuple[Frontier, Frontier, Explorer, list[np.ndarray]]:
+    """A frontier near the robot at (1, 1) and one far from it (the only ones the view shows),
+    a new explorer and the robot's place."""
+    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
+    shown = [far, near] if far_first else [near, far]
+    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: shown)
+    return near, far, Explorer(CONFIG, (1.5, 4.5)), [np.array([1.0, 1.0])]
+
+
 def test_a_frontier_that_does_not_come_closer_is_given_up_and_offered_when_it_is_all_left(
     view: MapView,
 ) -> None:
@@ -162,10 +173,7 @@ def test_a_stalled_exploration_goes_on_only_at_a_frontier_never_tried(
 def test_the_pair_keeps_its_target_frontier_while_it_is_reachable_and_not_given_up(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
-    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [far, near])
-    explorer = Explorer(CONFIG, (1.5, 4.5))
-    robots = [np.array([1.0, 1.0])]
+    near, far, explorer, robots = two_frontiers(view, monkeypatch, far_first=True)
     assert explorer.frontier(view, robots) is near  # no target yet: the nearest
     explorer.progress(far, 4.5, view)  # the pair works on the far one
     assert explorer.frontier(view, robots) is far
@@ -426,10 +434,7 @@ def test_a_frontier_beyond_the_look_distance_is_not_looked_at(
 def test_a_stalled_exploration_tries_each_given_up_frontier_once_more_but_not_the_last(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    near, far = cells_at(view, 1.5, 1.0), cells_at(view, 5.0, 3.0)
-    monkeypatch.setattr(explore, "frontiers", lambda *args, **kwargs: [near, far])
-    explorer = Explorer(CONFIG, (1.5, 4.5))
-    robots = [np.array([1.0, 1.0])]
+    near, far, explorer, robots = two_frontiers(view, monkeypatch)
     explorer.given_up.append(far.centroid_xy.copy())  # given up early on
     explorer.progress(near, 0.5, view)  # the target when the loop stalls
     assert explorer.abandon(view, robots)  # far is tried once more
