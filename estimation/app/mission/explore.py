@@ -37,7 +37,7 @@ from estimation.app.mission.view import MIN_UNKNOWN_M2, MapView
 from estimation.app.sim.planning import mapper_candidates
 from mapping.traversability import Frontier, Room, frontiers
 
-__all__ = ["Explorer", "ScanGoal", "TurnPlan"]
+__all__ = ["Explorer", "ScanGoal", "StallWatch", "TurnPlan"]
 
 #: Weights of a mapper pose's score, in floor cells: per metre of path driven, per metre still
 #: to go to the target frontier.
@@ -73,6 +73,39 @@ _MAX_PARTS = 3
 _PIVOT_COST = 200.0
 #: An untied turn costs this much (cells): as much as two pivots.
 _UNTIED_COST = 400.0
+
+
+#: Exploration stalls when the known floor grew by less than this (m²) over this many stations;
+#: it goes on at a frontier never tried if one is left, and ends if none is: what frontiers are
+#: left cannot be resolved from the floor the robots can reach.
+_STALL_M2, _STALL_STATIONS = 2.0, 10
+
+
+@dataclass
+class StallWatch:
+    """The known floor (m²) after each station since the window last restarted: exploring has
+    stalled when it grew by less than ``_STALL_M2`` over ``_STALL_STATIONS`` stations. A station
+    that brought the pair nearer to its target restarts the window: on the way to a far
+    frontier no floor is added (generated building 17 ended so, 18 m short of the corridor
+    left to explore, at 57 % of its floor)."""
+
+    known: list[float] = field(default_factory=list)
+
+    def add(self, known_m2: float, nearer: bool) -> bool:
+        """Count a station; whether exploring has stalled."""
+        self.known.append(known_m2)
+        if nearer:
+            self.restart()
+        return len(self.known) > _STALL_STATIONS and (
+            self.known[-1] - self.known[-1 - _STALL_STATIONS] < _STALL_M2
+        )
+
+    def restart(self) -> None:
+        self.known = self.known[-1:]
+
+    @staticmethod
+    def why() -> str:
+        return f"the known floor grew by less than {_STALL_M2:g} m² over {_STALL_STATIONS} stations"
 
 
 #: Where the pair goes next: a frontier, or a room nobody stood in.
@@ -297,23 +330,25 @@ class Explorer:
         self.retried, self.given_up = again, abandoned
         return True
 
-    def progress(self, frontier: Target | None, distance_m: float, view: MapView) -> None:
+    def progress(self, frontier: Target | None, distance_m: float, view: MapView) -> bool:
         """Track the target frontier across stations; give it up when it stops yielding: the
         robots came no nearer (by ``_PROGRESS_M``) and the known floor around it grew by less
-        than ``_PROGRESS_M2`` (a frontier that recedes as a room is mapped is progress)."""
+        than ``_PROGRESS_M2`` (a frontier that recedes as a room is mapped is progress).
+        Returns whether the robots came nearer to the same target than ever before."""
         if frontier is None:
             self.target = None
-            return
+            return False
         known = _known_near(view, frontier.centroid_xy)
         t = self.target
         if t is None or math.dist(t.centroid, frontier.centroid_xy) > _SAME_TARGET_M:
             self.target = _Target(frontier.centroid_xy.copy(), distance_m, known)
-            return
+            return False
         # The floor known around where the target was at the last station, then and now: as a
         # corridor is mapped its frontier moves on, and less is known around the new place.
         moved = not np.array_equal(t.centroid, frontier.centroid_xy)
         before = _known_near(view, t.centroid) if moved else known
-        if distance_m < t.best_m - _PROGRESS_M or before >= t.known_m2 + _PROGRESS_M2:
+        nearer = distance_m < t.best_m - _PROGRESS_M
+        if nearer or before >= t.known_m2 + _PROGRESS_M2:
             t.stale = 0
         else:
             t.stale += 1
@@ -322,6 +357,7 @@ class Explorer:
         if t.stale >= _PATIENCE:
             self.given_up.append(t.centroid.copy())
             self.target = None
+        return nearer
 
     def _goal_field(self, view: MapView, frontier: Target | None) -> np.ndarray:
         if frontier is None:

@@ -40,7 +40,7 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import EventMaker
 from estimation.app.mission.estimated_map import EstimatedMap
-from estimation.app.mission.explore import Explorer
+from estimation.app.mission.explore import Explorer, StallWatch
 from estimation.app.mission.fleet import Fleet, Goal
 from estimation.app.mission.localizer import ConcurrentLocalizer
 from estimation.app.mission.turns import RETRIES, fly_turn
@@ -68,10 +68,6 @@ __all__ = ["PARTIAL", "LoopResult", "MissionLoop"]
 PARTIAL = "partial.json"
 
 Progress = Callable[[str], None]
-#: Exploration stalls when the known floor grew by less than this (m²) over this many stations;
-#: it goes on at a frontier never tried if one is left, and ends if none is: what frontiers are
-#: left cannot be resolved from the floor the robots can reach.
-_STALL_M2, _STALL_STATIONS = 2.0, 10
 #: Frontiers given up in a row because no pair of robots found a scan pose toward them (a goal
 #: refused on a leg the estimated map shows free, a doorway too tight) before exploring ends.
 _UNREACHED = 3
@@ -343,7 +339,7 @@ class MissionLoop:
         for r in names:
             explorer.taken.append(self.pose(r))
         reason = f"station budget ({auto.stations}) spent"
-        known: list[float] = []  # known floor (m²) after each station
+        stall = StallWatch()
         unreached = 0  # frontiers given up in a row for want of a scan pose
         for k in range(auto.stations):
             self.fleet.log("roles", reference=reference, mapper=mapper, step=len(self.steps))
@@ -387,26 +383,25 @@ class MissionLoop:
             self.steps.append(StepSpec(reference=reference, at=at, mapper=mapper, scans=scans))
             self._station_done(station)
             view = self.view()
+            nearer = False
             if view is not None and frontier is not None:
                 reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
                 cells = frontier.cells
-                explorer.progress(frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])), view)
+                nearer = explorer.progress(
+                    frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])), view
+                )
             if view is not None:
                 res = view.floor.resolution_m
-                known.append(float((~view.floor.unknown).sum()) * res * res)
-                if len(known) > _STALL_STATIONS and (
-                    known[-1] - known[-1 - _STALL_STATIONS] < _STALL_M2
-                ):
+                if stall.add(float((~view.floor.unknown).sum()) * res * res, nearer):
                     here = [self.pose(mapper)[:2], self.pose(reference)[:2]]
                     if explorer.abandon(view, here):
                         # Stalled on the frontiers tried lately, while one never tried is
                         # left: go there (generated building 2 stopped with half a hall
                         # unexplored after three hopeless doorways).
                         self.abandoned += 1
-                        known = known[-1:]
+                        stall.restart()
                     else:
-                        reason = (f"exploration stalled: the known floor grew by less than "
-                                  f"{_STALL_M2:g} m² over {_STALL_STATIONS} stations")  # fmt: skip
+                        reason = f"exploration stalled: {stall.why()}"
                         break
             reference, mapper = mapper, names[(names.index(mapper) + 1) % len(names)]
             if mapper == reference:

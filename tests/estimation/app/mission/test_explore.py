@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimation.app.mission import explore
-from estimation.app.mission.explore import Explorer
+from estimation.app.mission.explore import Explorer, StallWatch
 from estimation.app.mission.view import MapView
 from mapping.traversability import Frontier
 from tests.estimation.app.mission.conftest import (
@@ -87,12 +87,12 @@ def test_a_frontier_that_does_not_come_closer_is_given_up_and_offered_when_it_is
     assert distance == pytest.approx(math.dist(robots[0], found.centroid_xy), rel=0.2)
 
     def give_up() -> None:
-        explorer.progress(found, distance, view)  # a new target
+        assert not explorer.progress(found, distance, view)  # a new target
         assert explorer.target is not None
         for station in range(explore._PATIENCE):
             assert explorer.target is not None
-            # Closer, but by less than 30 cm, and the map around it the same.
-            explorer.progress(found, distance - 0.05 * station, view)
+            # Closer, but by less than 30 cm, and the map around it the same: not nearer.
+            assert not explorer.progress(found, distance - 0.05 * station, view)
         assert explorer.target is None
 
     give_up()
@@ -120,16 +120,17 @@ def test_a_frontier_that_comes_closer_or_recedes_as_the_map_grows_is_kept(
     view: MapView, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     explorer = Explorer(CONFIG, (1.5, 4.5))
-    explorer.progress(frontier_at(6.5, 2.0), 6.0, view)
-    for station in range(4 * explore._PATIENCE):
-        explorer.progress(frontier_at(6.5, 2.0 + 0.1 * station), 5.5 - 0.5 * station, view)
+    assert not explorer.progress(frontier_at(6.5, 2.0), 6.0, view)
+    for station in range(4 * explore._PATIENCE):  # 0.5 m nearer at each station
+        assert explorer.progress(frontier_at(6.5, 2.0 + 0.1 * station), 5.5 - 0.5 * station,
+                                 view)  # fmt: skip
     assert explorer.given_up == []
     assert explorer.target is not None
     assert explorer.target.best_m == pytest.approx(5.5 - 0.5 * (4 * explore._PATIENCE - 1))
     # Stalling counts from the last gain; a frontier that jumped (> 1.5 m) is a new target.
-    explorer.progress(frontier_at(6.5, 2.8), 10.0, view)
+    assert not explorer.progress(frontier_at(6.5, 2.8), 10.0, view)
     assert explorer.target.stale == 1
-    explorer.progress(frontier_at(3.0, 2.8), 10.0, view)
+    assert not explorer.progress(frontier_at(3.0, 2.8), 10.0, view)
     assert explorer.target.stale == 0
     assert explorer.target.best_m == 10.0
     # No nearer, but the known floor around it grows by 0.5 m² or more per station: kept;
@@ -477,3 +478,23 @@ def test_progress_is_the_floor_known_around_where_the_frontier_was(
         explorer.progress(frontier_at(x, 2.0), 3.0, view)
         assert (explorer.target is None) == (stale == explore._PATIENCE)
     assert len(explorer.given_up) == 1
+
+
+def test_exploring_stalls_when_the_floor_stops_growing_but_not_on_the_way_to_a_target() -> None:
+    n = explore._STALL_STATIONS
+    watch = StallWatch()
+    grown = [100.0 + 10.0 * k for k in range(5)]  # mapping
+    assert not any(watch.add(m2, nearer=False) for m2 in grown)
+    flat = [watch.add(grown[-1] + 0.1 * k, nearer=False) for k in range(1, n + 2)]
+    assert flat == [False] * (n - 1) + [True, True]  # n stations that added less than 2 m²
+    # Driving to a far frontier adds no floor but comes nearer at each station: no stall.
+    watch = StallWatch()
+    assert not any(watch.add(100.0, nearer=True) for _ in range(3 * n))
+    assert len(watch.known) == 1
+    # The window then counts from the last station that came nearer.
+    assert not any(watch.add(100.0, nearer=False) for _ in range(n - 1))
+    assert watch.add(100.0, nearer=False)
+    watch.restart()  # the loop goes on at another frontier
+    assert watch.known == [100.0]
+    assert not watch.add(100.5, nearer=False)
+    assert "2 m² over 10 stations" in StallWatch.why()
