@@ -44,16 +44,20 @@ def floor_coverage(
     centres = space.lower_xy + (np.column_stack([cols, rows]) + 0.5) * space.resolution_m
     known = np.zeros(len(centres), dtype=bool)
     if len(centres):
-        box = {"lower_xy": centres.min(axis=0), "upper_xy": centres.max(axis=0)}
-        for band in ((-FLOOR_CLEAR_M, FLOOR_CLEAR_M), (FLOOR_CLEAR_M, body_height_m)):
-            try:
-                floor = floor_map(grid, body_z_m=band, **box)
-            except MapError:  # nothing seen in this band
-                continue
+        # The planner's floor map (``ground_z_m``: a column whose floor was seen is known).
+        try:
+            floor = floor_map(
+                grid, body_z_m=(FLOOR_CLEAR_M, body_height_m),
+                ground_z_m=(-FLOOR_CLEAR_M, FLOOR_CLEAR_M),
+                lower_xy=centres.min(axis=0), upper_xy=centres.max(axis=0),
+            )  # fmt: skip
+        except MapError:  # nothing seen there
+            floor = None
+        if floor is not None:
             ij = np.floor((centres - floor.lower_xy) / floor.resolution_m).astype(int)
             h, w = floor.shape
             inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
-            known[inside] |= ~floor.unknown[ij[inside, 1], ij[inside, 0]]
+            known[inside] = ~floor.unknown[ij[inside, 1], ij[inside, 0]]
     rooms_reachable = _rooms_holding(world, centres)
     entered = set().union(*(_rooms_holding(world, xy) for xy in truth_xy.values()))
     return {

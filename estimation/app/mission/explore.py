@@ -10,9 +10,9 @@ so that both beacons are in view, that add the most unknown space and bring the 
 that frontier, less a cost for the path. A frontier no path reaches (floor glimpsed through a
 doorway) is approached as the drivable floor from which it is in sight. Poses already taken
 are not taken again; a frontier the pair has failed to shrink from several stations in a row
-is given up. Once no frontier is
-left, the pair goes into the rooms of the estimated map that no robot stood in (a room seen
-whole through its doors has no frontier), nearest first, as it would to a frontier.
+is given up. Once no frontier is left, the pair goes into the rooms of the estimated map that no
+robot stood in (a room seen whole through its doors has no frontier), nearest first, as it would
+to a frontier.
 
 A turn in place is measured only by odometry unless a mutual observation ties it, and the
 beacons see each other only between 15° and 45° off each robot's heading. So every turn is
