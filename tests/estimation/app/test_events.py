@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from estimation.app import events
 from estimation.app.config import Config
-from estimation.app.events import EventMaker, _closing, _motion, _pair, _third
-from estimation.posegraph.events import Move, Start
+from estimation.app.events import EventMaker, _closing, _motion, _not_held, _pair, _third
+from estimation.posegraph.events import Move, Observe, Start
 from estimation.posegraph.graph import GraphSettings, odometry_covariance
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.mutual import measurements, separations
@@ -296,3 +298,72 @@ def test_a_one_way_sighting_tells_the_partner_from_a_third_robot_at_the_same_dis
     assert _pair(*seen, towards_a, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
     assert _closing(*seen, [[a_sees_b]], SETTINGS) == {(1, 1): 1}
     assert _pair(*seen, towards_a, SETTINGS, ([None], [None]), [[a_sees_b]]) == (b_sees_c, c_sees_b)
+
+
+def test_a_beacon_seen_where_a_robot_that_stood_still_was_observed_is_that_robots() -> None:
+    """Generated building 100, dwells 540 and 549 (three robots), as recorded in shape: c and
+    a observed each other and stood still; b came to stand as far from a on a's other side,
+    facing so that it saw a's beacon where c did. a's detection of c's beacon agreed with b's of
+    a's as well as a's of b's did, and with the estimate far off it was taken for b's, 2.2 m
+    and 50° off. A detection where a saw c in their accepted observation is c's alone."""
+    c_pose = [2.0, 1.0, math.pi - 0.3]
+    a_sees_c, c_sees_a = seen(c_pose)
+    b_pose = about_a_beacon(c_pose, math.radians(-50.0))
+    a_sees_b, b_sees_a = seen(b_pose)
+    # b's beacon 1 cm farther than its place: c's agrees better with b's detection of a's.
+    a_sees_b = detection(a_sees_b.range_m + 0.01, a_sees_b.bearing_rad)
+    still = (np.arange(0.0, 100.0, 0.1), np.zeros((1000, 3)))
+    observed: dict[str, list[BeaconDetection]] = {}
+
+    def mission(forget: bool) -> tuple[EventMaker, list[Observe]]:
+        maker = EventMaker(Config(), ["a", "b", "c"], {"a": np.zeros(3)},
+                           {r: still for r in "abc"})  # fmt: skip
+        made = []
+        for number, (reference, mapper, a, b, c) in enumerate([
+            # Dwell 540: a and c observe each other (b's beacon hidden from a).
+            ("a", "c", [a_sees_c], [], [c_sees_a]),
+            # Dwell 549: a sees both beacons, b and c both see a's at the same place.
+            ("a", "b", [a_sees_c, a_sees_b], [b_sees_a], [c_sees_a]),
+        ]):  # fmt: skip
+            observed.update(a=a, b=b, c=c)
+            entry = {"event": "dwell", "t_s": 10.0 * number, "end_s": 10.0 * number + 5.0,
+                     "poses": {"a": 0, "b": 0, "c": 0}, "reference": reference,
+                     "mapper": mapper}  # fmt: skip
+            made += [e for e in maker.feed(number, entry, {r: r for r in "abc"})
+                     if isinstance(e, Observe)]  # fmt: skip
+            if forget:
+                maker.held.clear()
+        return maker, made
+
+    with pytest.MonkeyPatch.context() as patch:
+        # A sweep is only its robot's name here; its detections are the test's.
+        patch.setattr(
+            events,
+            "sweep_in",
+            lambda robot, *_: (SimpleNamespace(points_scanner=robot, reflector=None), ""),
+        )
+        patch.setattr(events, "detect_beacons", lambda robot, *_, **__: (observed[robot], None))
+        maker, (first, second) = mission(forget=False)
+        assert (first.a_m, first.b_m) == (a_sees_c.range_m, c_sees_a.range_m)
+        assert maker.held[pose_key("a", 0), pose_key("c", 0)] == (
+            a_sees_c.range_m, a_sees_c.bearing_rad)  # fmt: skip
+        assert (second.a_m, second.alpha_rad) == (a_sees_b.range_m, a_sees_b.bearing_rad)
+        # Without what a saw of c, c's beacon, which agrees better with b's, is taken.
+        _, (_, wrong) = mission(forget=True)
+        assert (wrong.a_m, wrong.alpha_rad) == (a_sees_c.range_m, a_sees_c.bearing_rad)
+
+
+def test_only_detections_within_the_noise_of_a_held_one_are_set_aside() -> None:
+    """The held detection is c's beacon; another as far but 1° aside (four bearing sigmas
+    each), or 10 cm nearer, is not."""
+    ka, kc = pose_key("a", 3), pose_key("c", 7)
+    held = {(ka, kc): (2.25, math.radians(25.0))}
+    same = detection(2.26, math.radians(25.2))
+    aside = detection(2.25, math.radians(26.0))
+    nearer = detection(2.15, math.radians(25.0))
+    seen_a = [same, aside, nearer]
+    assert _not_held(seen_a, ka, [kc], held, SETTINGS) == [aside, nearer]
+    # Another third robot, another pose of a or of c: nothing is held.
+    assert _not_held(seen_a, ka, [pose_key("b", 7)], held, SETTINGS) == seen_a
+    assert _not_held(seen_a, pose_key("a", 4), [kc], held, SETTINGS) == seen_a
+    assert _not_held(seen_a, ka, [pose_key("c", 8)], held, SETTINGS) == seen_a
