@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 from numba import njit
+from scipy import ndimage
 
 from estimation.app.config import Config
 from estimation.app.sim.planning import BeaconGeometry, CoverageModel, grid_graph
@@ -89,17 +90,19 @@ class MapView:
             upper_xy=grid.origin_m[:2] + (high[:2] + 1) * res + _BORDER_M,
         )  # fmt: skip
         self.stood = np.zeros((0, 2)) if stood_xy is None else np.asarray(stood_xy).reshape(-1, 2)
+        drivable = floor
         if len(self.stood):
-            floor = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
+            floor, drivable = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
         if blocked_xy is not None and len(blocked_xy):
-            floor = _block(floor, np.asarray(blocked_xy, dtype=float).reshape(-1, 2))
+            blocked = np.asarray(blocked_xy, dtype=float).reshape(-1, 2)
+            floor, drivable = _block(floor, blocked), _block(drivable, blocked)
         self.floor: FloorMap = floor
         # A robot's beacon sits ahead of its centre: ignore scans within reach of both.
         self._ignore_m = config.robot.scanner_x_m + config.beacon.offset_m + 0.25
         self.robots = np.zeros((0, 2)) if robots_xy is None else np.asarray(robots_xy)
         self.robots = self.robots.reshape(-1, 2)
         self.space: FreeSpace = drivable_space(
-            self.floor, robot_radius_m=self.radius_m, margin_m=margin_m
+            drivable, robot_radius_m=self.radius_m, margin_m=margin_m
         )
         # What a scan adds: unknown floor of the regions a frontier leads to (the shadows of
         # furniture, never resolved, would keep the pair busy where it already is).
@@ -223,16 +226,27 @@ def _distance_to_points(floor: FloorMap, points: np.ndarray, reach_m: float) -> 
 
 
 def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
-                       margin_m: float) -> FloorMap:  # fmt: skip
-    """The floor map with no obstacle within the footprint (plus a cell) of each place a robot
-    stood, and nothing unknown within the footprint plus the margin (see :class:`MapView`)."""
+                       margin_m: float) -> tuple[FloorMap, FloorMap]:  # fmt: skip
+    """The floor map as seen and as driven (see :class:`MapView`). Driven: no obstacle within
+    the footprint (plus a cell) of each place a robot stood, and nothing unknown within the
+    footprint plus the margin. Seen: the same, but a structure reaching beyond that disk (an
+    obstacle 8-connected to obstacles outside every disk: a wall, not a robot's body) keeps its
+    cells outside the footprint. Generated building 1: b112 stood 4 cm from a wall; its
+    surface was cleared, the unseen inside of the wall behind it looked like floor to explore,
+    and b turned to face the wall, its sweep too near it to hold a ceiling."""
     res = floor.resolution_m
     d = _distance_to_points(floor, stood, radius_m + margin_m + res)
     body = d <= radius_m + res
     around = d <= radius_m + margin_m + res
     obstacle = floor.obstacle & ~body
     free = floor.free | body | (around & ~obstacle)
-    return FloorMap(obstacle, free, floor.lower_xy, res)
+    driven = FloorMap(obstacle, free, floor.lower_xy, res)
+    labels, _ = ndimage.label(floor.obstacle, structure=np.ones((3, 3), dtype=bool))
+    beyond = np.unique(labels[obstacle])
+    structure = np.isin(labels, beyond[beyond > 0]) & body & (d > radius_m)
+    if not structure.any():
+        return driven, driven
+    return FloorMap(obstacle | structure, free & ~structure, floor.lower_xy, res), driven
 
 
 def _block(floor: FloorMap, points: np.ndarray) -> FloorMap:

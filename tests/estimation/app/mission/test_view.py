@@ -44,6 +44,24 @@ def test_where_robots_stood_becomes_drivable(grid: OccupancyGrid, view: MapView)
     assert view.floor.unknown[:, 0].all()
 
 
+def test_a_wall_beside_where_a_robot_stood_stays_in_the_floor_seen(grid: OccupancyGrid) -> None:
+    """Generated building 1: a robot stood 4 cm from a wall, here the closet's far wall (x
+    10.0-10.1 m, the map's end). Its footprint and a cell are drivable, as for the body at ``BODY_AT``, but the
+    wall's cells stay obstacles in the floor the planner looks at: the unseen inside of the wall
+    behind them is no floor to explore."""
+    near_wall = (10.0 - CONFIG.robot.footprint_radius_m - 0.04, 2.0)
+    stood = MapView(grid, CONFIG, np.array([BODY_AT, UNSEEN_AT, near_wall]))
+    bare = MapView(grid, CONFIG, np.array([BODY_AT, UNSEEN_AT]))
+    wall = stood.space.cell((10.05, 2.0))
+    assert bare.floor.obstacle[wall]
+    assert stood.floor.obstacle[wall]
+    assert stood.space.is_free(near_wall)
+    # The body stands alone: cleared in both.
+    assert stood.floor.free[stood.space.cell(BODY_AT)]
+    # No body stood there: the obstacles are those of the map.
+    np.testing.assert_array_equal(stood.floor.obstacle, bare.floor.obstacle)
+
+
 def test_free_near_snaps_to_the_nearest_drivable_cell_within_reach(view: MapView) -> None:
     space = view.space
     inside = np.array([3.0, 3.0])
