@@ -39,6 +39,7 @@ from estimation.app.dataset import (
     sweeps_before_changes,
 )
 from estimation.app.events import EventMaker
+from estimation.app.mission.closing import closing_target
 from estimation.app.mission.estimated_map import EstimatedMap
 from estimation.app.mission.explore import Explorer, StallWatch
 from estimation.app.mission.fleet import Fleet, Goal
@@ -147,6 +148,7 @@ class MissionLoop:
         self.unobserved: list[str] = []
         self.pivots = 0  # pivot poses driven to, to tie the reference's turns
         self.untied: dict[str, str] = {}  # stations whose turn no mutual observation ties: why
+        self.closing: list[str] = []  # per closing station, the first station of the tail
         self.given_up: list[list[float]] = []
         self.abandoned = 0  # stalls after which an untried frontier was taken up
         self.retried_frontiers: list[list[float]] = []
@@ -355,8 +357,11 @@ class MissionLoop:
             ref_pose, map_pose = self.pose(reference), self.pose(mapper)
             frontier = explorer.frontier(view, [ref_pose[:2], map_pose[:2]])
             if frontier is None and k > 0:
-                reason = "no reachable frontier or unvisited room left"
-                break
+                self._collect(wait=True)  # the last station's searches: is the tail tied?
+                frontier = closing_target(self, view)
+                if frontier is None:
+                    reason = "no reachable frontier or unvisited room left"
+                    break
             flown = self._station(k, explorer, reference, mapper, frontier)
             for other_reference, other_mapper in self._other_pairs(reference, mapper):
                 if flown is not None:
@@ -560,6 +565,7 @@ class MissionLoop:
             "unobserved_scans": self.unobserved,
             "pivots": self.pivots,
             "untied_turns": self.untied,
+            "closing_stations": self.closing,
             "refused_goals": self.refused + list(fleet_counts.get("refused_goals", [])),
             "blocked_at": [[round(x, 3), round(y, 3)] for x, y in self.blocked],
             "given_up_frontiers": self.given_up,

@@ -119,6 +119,7 @@ def test_the_loop_reports_its_own_figures(flown: tuple[Path, SimulationResult]) 
     assert result.loop["online_vs_final_m"] < 0.05
     assert len(loop["changed"]) > 0
     assert loop["refused_goals"] == []
+    assert loop["closing_stations"] == []  # the budget ended it, not an empty map
     assert len(loop["stations"]) == 2
     mission = yaml.safe_load((dataset / "mission.yaml").read_text(encoding="utf-8"))
     # the plan as flown, explicit: each station, and each pivot that tied a turn
