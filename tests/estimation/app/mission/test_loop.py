@@ -256,3 +256,41 @@ def test_a_frontier_no_pair_reaches_is_given_up_for_another(
     assert len(given_up) >= 1
     assert {k for k, _ in tried} >= failing | {0}
     assert sum(1 for k, _ in tried if k == 1) == 2  # the pair, then the pair swapped
+
+
+def test_a_floating_tail_sends_the_pair_back_before_the_mission_ends(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Nothing is left to explore after two stations, and the tail is taken to float from the
+    second: the pair flies closing stations toward where the first stood (a room target) until
+    the budget ends the mission; they are reported."""
+    from estimation.app.mission import closing
+    from estimation.app.mission.explore import Explorer
+
+    found = Explorer.frontier
+    asked: list[int] = []
+
+    def frontier(self: Explorer, view: object, from_xy: object) -> object:
+        asked.append(1)
+        return found(self, view, from_xy) if len(asked) <= 2 else None  # type: ignore[arg-type]
+
+    monkeypatch.setattr(Explorer, "frontier", frontier)
+    monkeypatch.setattr(
+        closing,
+        "floating_tail",
+        lambda order, untied, records: order[1] if len(order) > 1 else None,
+    )
+    path = write_mission(tmp_path, stations=4, scans_per_station=1)
+    result = run_simulation(path, tmp_path / "dataset")
+    assert result.loop is not None
+    assert result.loop["stop_reason"] == "station budget (4) spent"
+    trace = result.loop["stations"]
+    flown = [t for t in trace if t["scans"]]
+    assert len(flown) == 4
+    assert result.loop["closing_stations"] == [flown[1]["reference"]] * 2
+    report = json.loads((tmp_path / "dataset" / "result" / "report.json").read_text())
+    assert report["mission_loop"]["closing_stations"] == result.loop["closing_stations"]
+    # The closing stations aimed at where the first station stood: a room target there.
+    for station in trace[2:]:
+        assert station["room"]
+        assert math.dist(station["frontier"], flown[0]["pose"][:2]) < 0.1
