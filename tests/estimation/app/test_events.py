@@ -209,7 +209,9 @@ def test_a_beacon_that_the_third_robots_own_sweep_claims_is_never_the_partners()
     a_sees_b, b_sees_a = seen(b_pose)
     a_sees_c, c_sees_a = seen(about_a_beacon(b_pose, math.radians(-46.0)))
     predicted = ((a_sees_b.range_m, a_sees_b.bearing_rad), (b_sees_a.range_m, b_sees_a.bearing_rad))
-    to_c = (a_sees_c.range_m, a_sees_c.bearing_rad)
+    # The estimate places c's beacon 30 cm off a's detection of it: nearer than b's, but not
+    # so near that the estimate alone decides (see the next test).
+    to_c = (a_sees_c.range_m + 0.3, a_sees_c.bearing_rad)
     others = ([to_c], [None])
     # Without c's sweep the agreeing pair is taken (and the graph's gates must judge it).
     assert _pair([a_sees_c], [b_sees_a], predicted, SETTINGS, others) == (a_sees_c, b_sees_a)
@@ -367,3 +369,22 @@ def test_only_detections_within_the_noise_of_a_held_one_are_set_aside() -> None:
     assert _not_held(seen_a, ka, [pose_key("b", 7)], held, SETTINGS) == seen_a
     assert _not_held(seen_a, pose_key("a", 4), [kc], held, SETTINGS) == seen_a
     assert _not_held(seen_a, ka, [pose_key("c", 8)], held, SETTINGS) == seen_a
+
+
+def test_a_beacon_the_estimate_places_at_a_third_robot_is_never_the_partners() -> None:
+    """Generated building 108, dwell 21 (reference c, mapper a), as recorded: a's detection
+    3.311 m / −44.5° lay where the estimate put b's beacon (3.309 m / −44.6°) and 2.4 m from
+    where it put c's (3.016 m / −89.9°); b's sweep did not see a, so nothing claimed it, and
+    the pair with c's detection of a (3.215 m / −47.9°) was taken, 0.32 m and 47° off."""
+    r = math.radians
+    c_sees_a, a_sees_b = detection(3.215, r(-47.9)), detection(3.311, r(-44.5))
+    predicted = ((3.205, r(-42.7)), (3.016, r(-89.9)))
+    to_b = ([(2.359, r(-109.2))], [(3.309, r(-44.6))])
+    assert _pair([c_sees_a], [a_sees_b], predicted, SETTINGS) == (c_sees_a, a_sees_b)
+    assert _pair([c_sees_a], [a_sees_b], predicted, SETTINGS, to_b) == (None, None)
+    # The estimate's b 20 cm off the detection, or c's within half a metre of it: the
+    # estimate alone rules nothing out.
+    b_off = ([None], [(3.309 + 0.2, r(-44.6))])
+    assert _pair([c_sees_a], [a_sees_b], predicted, SETTINGS, b_off) == (c_sees_a, a_sees_b)
+    c_near = (predicted[0], (3.3, r(-40.0)))
+    assert _pair([c_sees_a], [a_sees_b], c_near, SETTINGS, to_b) == (c_sees_a, a_sees_b)
