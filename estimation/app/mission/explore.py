@@ -255,7 +255,16 @@ class Explorer:
     given_up: list[np.ndarray] = field(default_factory=list)  # frontier centroids
     retried: list[np.ndarray] = field(default_factory=list)  # given up once, tried again
     target: _Target | None = None
+    #: The corner of the floor map whose cells the target's count from: the map grows during
+    #: a station, and with it the next view's corner (generated building 104, three robots:
+    #: a frontier's cells indexed past the grown map's edge).
+    frame_xy: np.ndarray | None = None
     _taken_xy: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)), repr=False)
+
+    def centres(self, view: MapView, target: Target) -> np.ndarray:
+        """The centres (N, 2) of the target's cells in the map frame."""
+        lower = view.floor.lower_xy if self.frame_xy is None else self.frame_xy
+        return lower + (target.cells[:, ::-1] + 0.5) * view.floor.resolution_m
 
     def _taken(self, pose: np.ndarray) -> bool:
         # ``taken`` only grows: its places as one array, to find the few nearby at once.
@@ -270,6 +279,12 @@ class Explorer:
         )
 
     def frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Target | None:
+        """:meth:`_frontier`; its cells count from ``view``'s corner (``frame_xy``)."""
+        found = self._frontier(view, from_xy)
+        self.frame_xy = view.floor.lower_xy.copy()
+        return found
+
+    def _frontier(self, view: MapView, from_xy: list[np.ndarray]) -> Target | None:
         """The frontier the pair works on while it is still reachable and not given up (the
         tracked target); else the reachable frontier nearest (by path) to any of ``from_xy``,
         not given up. When only given-up frontiers are left, the nearest of them: the first
@@ -362,8 +377,7 @@ class Explorer:
     def _goal_field(self, view: MapView, frontier: Target | None) -> np.ndarray:
         if frontier is None:
             return np.zeros(view.space.free.shape)
-        centres = view.floor.lower_xy + (frontier.cells[:, ::-1] + 0.5) * view.floor.resolution_m
-        return view.distances_from(list(centres))
+        return view.distances_from(list(self.centres(view, frontier)))
 
     def _candidates(self, view: MapView, reference: np.ndarray, mapper: np.ndarray,
                     others: list[np.ndarray], reachable: np.ndarray,

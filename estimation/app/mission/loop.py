@@ -359,6 +359,7 @@ class MissionLoop:
             if frontier is None and k > 0:
                 self._collect(wait=True)  # the last station's searches: is the tail tied?
                 frontier = closing_target(self, view)
+                explorer.frame_xy = view.floor.lower_xy.copy()
                 if frontier is None:
                     reason = "no reachable frontier or unvisited room left"
                     break
@@ -391,10 +392,8 @@ class MissionLoop:
             nearer = False
             if view is not None and frontier is not None:
                 reach = view.distances_from([self.pose(mapper)[:2], self.pose(reference)[:2]])
-                cells = frontier.cells
-                nearer = explorer.progress(
-                    frontier, float(np.min(reach[cells[:, 0], cells[:, 1]])), view
-                )
+                away = min(view.at(reach, c) for c in explorer.centres(view, frontier))
+                nearer = explorer.progress(frontier, away, view)
             if view is not None:
                 res = view.floor.resolution_m
                 if stall.add(float((~view.floor.unknown).sum()) * res * res, nearer):

@@ -11,9 +11,11 @@ import pytest
 from estimation.app.mission import explore
 from estimation.app.mission.explore import Explorer, StallWatch
 from estimation.app.mission.view import MapView
+from mapping.grid import OccupancyGrid
 from mapping.traversability import Frontier
 from tests.estimation.app.mission.conftest import (
     CONFIG,
+    RES,
     glimpsed,
     seen_whole,
 )
@@ -498,3 +500,32 @@ def test_exploring_stalls_when_the_floor_stops_growing_but_not_on_the_way_to_a_t
     assert watch.known == [100.0]
     assert not watch.add(100.5, nearer=False)
     assert "2 m² over 10 stations" in StallWatch.why()
+
+
+def test_a_targets_cells_count_from_the_map_it_was_found_on_as_the_map_grows() -> None:
+    """Generated building 104, three robots: the map grew west during a station, the next
+    view's floor map began 1.5 m further west, and the target's cells, indexed on the old one,
+    pointed 15 cells east of the target (and past the map's edge: the mission crashed)."""
+    grid = seen_whole()
+    robots = [np.array([2.5, 2.0]), np.array([1.0, 1.0])]
+    view = MapView(grid, CONFIG, np.array(robots))
+    explorer = Explorer(CONFIG, (1.5, 4.5))
+    room = explorer.frontier(view, robots)
+    assert room is not None
+    assert explorer.frame_xy is not None
+    where = view.floor.lower_xy + (room.cells[:, ::-1] + 0.5) * RES
+    # The map grows: floor seen 1.5 m west of the rooms' wall.
+    cells, values = grid.cells()
+    extra = np.array([[i, j, k] for i in range(-16, -1) for j in range(0, 40) for k in range(3)])
+    grown = MapView(
+        OccupancyGrid.from_cells(grid.params, np.vstack([cells, extra]),
+                                 np.concatenate([values, np.full(len(extra), -2.0)])),
+        CONFIG, np.array(robots),
+    )  # fmt: skip
+    assert grown.floor.lower_xy[0] == pytest.approx(view.floor.lower_xy[0] - 1.5, abs=1e-9)
+    np.testing.assert_allclose(explorer.centres(grown, room), where, atol=1e-9)
+    expected = grown.distances_from(list(where))
+    np.testing.assert_array_equal(explorer._goal_field(grown, room), expected)
+    # Counted from the grown map's corner, the same cells lie 1.5 m west of the target.
+    naive = grown.floor.lower_xy + (room.cells[:, ::-1] + 0.5) * RES
+    np.testing.assert_allclose(naive - where, [[-1.5, 0.0]] * len(where), atol=1e-9)
