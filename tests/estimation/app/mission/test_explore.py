@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from estimation.app.mission import explore
-from estimation.app.mission.explore import Explorer, StallWatch
+from estimation.app.mission.explore import Explorer, StallWatch, Target
 from estimation.app.mission.view import MapView
 from mapping.grid import OccupancyGrid
 from mapping.traversability import Frontier
@@ -348,13 +348,19 @@ def test_a_robot_is_in_the_way_only_beside_the_segment_between_the_beacons() -> 
     assert not explore._in_the_way(a, a, [np.array([1.0, 0.0])], radius)  # 1 m from a point
 
 
-def test_once_no_frontier_is_left_the_pair_goes_into_the_rooms_nobody_stood_in() -> None:
+def room_b() -> tuple[OccupancyGrid, list[np.ndarray], MapView, Explorer, Target]:
+    """Rooms A and B seen whole, the robots in room A, and the target the explorer picks."""
     grid = seen_whole()
     robots = [np.array([2.5, 2.0]), np.array([1.0, 1.0])]
     view = MapView(grid, CONFIG, np.array(robots))
     explorer = Explorer(CONFIG, (1.5, 4.5))
     room = explorer.frontier(view, robots)
     assert room is not None
+    return grid, robots, view, explorer, room
+
+
+def test_once_no_frontier_is_left_the_pair_goes_into_the_rooms_nobody_stood_in() -> None:
+    grid, robots, view, explorer, room = room_b()
     assert 5.6 < room.centroid_xy[0] < 6.5  # room B, seen whole through its door
     distance = float(np.min(view.distances_from(robots)[room.cells[:, 0], room.cells[:, 1]]))
     assert 1.5 < distance < 4.5
@@ -506,12 +512,7 @@ def test_a_targets_cells_count_from_the_map_it_was_found_on_as_the_map_grows() -
     """Generated building 104, three robots: the map grew west during a station, the next
     view's floor map began 1.5 m further west, and the target's cells, indexed on the old one,
     pointed 15 cells east of the target (and past the map's edge: the mission crashed)."""
-    grid = seen_whole()
-    robots = [np.array([2.5, 2.0]), np.array([1.0, 1.0])]
-    view = MapView(grid, CONFIG, np.array(robots))
-    explorer = Explorer(CONFIG, (1.5, 4.5))
-    room = explorer.frontier(view, robots)
-    assert room is not None
+    grid, robots, view, explorer, room = room_b()
     assert explorer.frame_xy is not None
     where = view.floor.lower_xy + (room.cells[:, ::-1] + 0.5) * RES
     # The map grows: floor seen 1.5 m west of the rooms' wall.
