@@ -19,7 +19,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from estimation.app.mission.view import MapView
-from estimation.posegraph.keys import pose_key
+from estimation.posegraph.keys import key_label
 from mapping.traversability import Room
 
 __all__ = ["CLOSING_STATIONS", "closing_target", "floating_tail", "target_near"]
@@ -35,7 +35,6 @@ _TYING = ("link", "loop")
 class ClosingLoop(Protocol):
     """What closing needs of the loop (:class:`~estimation.app.mission.loop.MissionLoop`)."""
 
-    robots: list[str]
     estimate: dict[int, np.ndarray]
     trace: list[dict[str, Any]]
     localizations: list[dict[str, Any]]
@@ -56,10 +55,8 @@ def closing_target(loop: ClosingLoop, view: MapView) -> Room | None:
     if first is None or order.index(first) == 0:
         return None
     before = order[order.index(first) - 1]
-    robot = next((r for r in loop.robots
-                  if before.startswith(r) and before[len(r):].isdigit()), None)  # fmt: skip
-    key = None if robot is None else pose_key(robot, int(before[len(robot) :]))
-    if key is None or key not in loop.estimate:
+    key = next((k for k in loop.estimate if key_label(k) == before), None)
+    if key is None:
         return None
     target = target_near(view, loop.estimate[key][:2])
     if target is not None:

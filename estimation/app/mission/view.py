@@ -95,7 +95,9 @@ class MapView:
             floor, drivable = _clear_where_stood(floor, self.stood, self.radius_m, margin_m)
         if blocked_xy is not None and len(blocked_xy):
             blocked = np.asarray(blocked_xy, dtype=float).reshape(-1, 2)
-            floor, drivable = _block(floor, blocked), _block(drivable, blocked)
+            seen = _block(floor, blocked)
+            drivable = seen if drivable is floor else _block(drivable, blocked)
+            floor = seen
         self.floor: FloorMap = floor
         # A robot's beacon sits ahead of its centre: ignore scans within reach of both.
         self._ignore_m = config.robot.scanner_x_m + config.beacon.offset_m + 0.25
@@ -241,9 +243,12 @@ def _clear_where_stood(floor: FloorMap, stood: np.ndarray, radius_m: float,
     obstacle = floor.obstacle & ~body
     free = floor.free | body | (around & ~obstacle)
     driven = FloorMap(obstacle, free, floor.lower_xy, res)
+    ring = floor.obstacle & body & (d > radius_m)  # cleared outside the footprint
+    if not ring.any():
+        return driven, driven
     labels, _ = ndimage.label(floor.obstacle, structure=np.ones((3, 3), dtype=bool))
     beyond = np.unique(labels[obstacle])
-    structure = np.isin(labels, beyond[beyond > 0]) & body & (d > radius_m)
+    structure = np.isin(labels, beyond[beyond > 0]) & ring
     if not structure.any():
         return driven, driven
     return FloorMap(obstacle | structure, free & ~structure, floor.lower_xy, res), driven

@@ -90,7 +90,6 @@ def test_the_target_is_the_drivable_floor_around_the_place(view: MapView) -> Non
 class Loop:
     """The parts of the mission loop that closing reads."""
 
-    robots: list[str] = field(default_factory=lambda: ["a", "b"])
     estimate: dict[int, np.ndarray] = field(default_factory=dict)
     trace: list[dict[str, Any]] = field(default_factory=list)
     localizations: list[dict[str, Any]] = field(default_factory=list)
