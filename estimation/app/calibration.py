@@ -26,7 +26,14 @@ import yaml
 
 from estimation import __version__
 from estimation.app.config import Config, ConfigError, config_from_mapping
-from estimation.app.dataset import Dataset, RobotStream, decode_robot, load_dataset, sweep_in
+from estimation.app.dataset import (
+    DWELL_SETTLE_S,
+    Dataset,
+    RobotStream,
+    decode_robot,
+    load_dataset,
+    sweep_in,
+)
 from estimation.app.rig import beacon_parameters, mirror_geometry
 from sensors.atomic import write_text_atomic
 from sensors.errors import OutputError, SensorError
@@ -171,7 +178,7 @@ class BeaconResult:
 
 def _dwell_windows(dataset: Dataset) -> list[tuple[int, float, float]]:
     """(event number, start, end) of every dwell; scans from 0.2 s after it began, as in batch."""
-    return [(n, float(e["t_s"]) + 0.2, float(e["end_s"]))
+    return [(n, float(e["t_s"]) + DWELL_SETTLE_S, float(e["end_s"]))
             for n, e in enumerate(dataset.events) if e["event"] == "dwell"]  # fmt: skip
 
 
@@ -395,7 +402,7 @@ def calibrate_beacon(
                                config.scanner.measuring_mode) for r in robots}  # fmt: skip
     scans: list[tuple[Scan3D, Scan3D]] = []
     for _, e in dwells:
-        pair = [sweep_in(streams[r], float(e["t_s"]) + 0.2, float(e["end_s"]), config)[0]
+        pair = [sweep_in(streams[r], float(e["t_s"]) + DWELL_SETTLE_S, float(e["end_s"]), config)[0]
                 for r in (e["reference"], e["mapper"])]  # fmt: skip
         if pair[0] is not None and pair[1] is not None:
             scans.append((pair[0], pair[1]))

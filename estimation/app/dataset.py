@@ -32,6 +32,7 @@ from sensors.trajio import read_tum
 from sensors.yamlio import merge_mappings, read_text_file, read_yaml_mapping
 
 __all__ = [
+    "DWELL_SETTLE_S",
     "Dataset",
     "LmsDecoder",
     "RobotStream",
@@ -47,7 +48,11 @@ __all__ = [
     "stations_of",
     "sweep_in",
     "sweeps_before_changes",
+    "with_dwell_sweeps",
 ]
+
+#: A dwell's sweep is taken from this long after the dwell began (the robot has settled).
+DWELL_SETTLE_S = 0.2
 
 Progress = Callable[[str], None]
 #: events.jsonl of a very long mission (a line per move and dwell) stays far below this.
@@ -272,10 +277,21 @@ class RobotStream:
     truncated_bytes: int = 0
     corrupt_bytes: int = 0  # records lost to damaged record headers (the capture resynchronised)
     implausible: dict[str, int] = field(default_factory=dict)  # scans rejected, by reason
+    # The sweep (or why none) of each dwell, by its number in the event log, made while the
+    # scans were at hand (:func:`with_dwell_sweeps`); a dwell not in it is made from the scans.
+    dwell_sweeps: dict[int, tuple[Scan3D | None, str | None]] = field(default_factory=dict)
 
     @property
     def implausible_scans(self) -> int:
         return sum(self.implausible.values())
+
+    def sweep_of(self, number: int, entry: dict[str, Any],
+                 config: Config) -> tuple[Scan3D | None, str | None]:  # fmt: skip
+        """The sweep of dwell ``number`` (its event-log ``entry``), or why there is none."""
+        made = self.dwell_sweeps.get(number)
+        if made is not None:
+            return made
+        return sweep_in(self, float(entry["t_s"]) + DWELL_SETTLE_S, float(entry["end_s"]), config)
 
 
 class LmsDecoder:
@@ -366,6 +382,16 @@ def decode_robot(
             "scanner.field_of_view_deg, angular_resolution_deg, unit and serial.baud_rate"
         )
     return decoder.stream(reader.truncated_bytes, reader.corrupt_bytes)
+
+
+def with_dwell_sweeps(stream: RobotStream, events: list[dict[str, Any]],
+                      config: Config) -> RobotStream:  # fmt: skip
+    """``stream`` holding the sweep of every dwell of the event log instead of its scans: what
+    the estimator takes of a decoded capture, in a tenth of its memory (office_loop: 38,000
+    scans, 130 MB, per robot). ``sweep_of`` gives the same sweeps as from the scans."""
+    sweeps = {n: stream.sweep_of(n, e, config)
+              for n, e in enumerate(events) if e["event"] == "dwell"}  # fmt: skip
+    return replace(stream, scans=[], times_s=stream.times_s[:0], dwell_sweeps=sweeps)
 
 
 def sweep_in(

@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 from estimation.app.config import Config, ConfigError, config_from_mapping
 from estimation.app.dataset import (
+    DWELL_SETTLE_S,
     EVENTS_LIMIT_BYTES,
     decode_robot,
     parse_event,
@@ -319,7 +320,7 @@ def _check_sweeps(
         if event["event"] != "dwell":
             continue
         for robot, stream in streams.items():
-            scan, why = sweep_in(stream, event["t_s"] + 0.2, event["end_s"], config)
+            scan, why = sweep_in(stream, event["t_s"] + DWELL_SETTLE_S, event["end_s"], config)
             if scan is None:
                 check.add("warning", f"events.jsonl:{number}", f"dwell: robot {robot}: no sweep "
                           f"({why})")  # fmt: skip

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config
-from estimation.app.dataset import Dataset, Progress, RobotStream, Sweep, sweep_in
+from estimation.app.dataset import Dataset, Progress, RobotStream, Sweep
 from estimation.app.rig import T_robot_scanner, beacon_parameters, graph_settings
 from estimation.chi2 import chi2_quantile
 from estimation.posegraph.events import Event, Move, Observe, Start
@@ -136,10 +136,9 @@ class EventMaker:
     def _dwell(self, number: int, entry: dict[str, Any], streams: dict[str, RobotStream]) -> None:
         config, builder = self.config, self.builder
         self.dwells += 1
-        start, end = float(entry["t_s"]), float(entry["end_s"])
         in_dwell: dict[str, Sweep] = {}
         for robot in self.robots:
-            scan, why = sweep_in(streams[robot], start + 0.2, end, config)
+            scan, why = streams[robot].sweep_of(number, entry, config)
             index = int(entry["poses"][robot])
             if scan is None:
                 self.missing.append(f"{robot}{index} (dwell {number}): {why}")

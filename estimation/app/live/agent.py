@@ -190,13 +190,13 @@ def sweep_summary(config: Config, header: dict[str, Any], records: list[tuple[fl
     """On board, after a dwell: the sweep assembled from the dwell's telegrams (``records``,
     stamped on the robot's clock) and the beacons detected in it, as the base will find them
     in the capture."""
-    from estimation.app.dataset import LmsDecoder, sweep_in
+    from estimation.app.dataset import DWELL_SETTLE_S, LmsDecoder, sweep_in
     from estimation.app.rig import beacon_parameters, scan_limits
     from sensors.scan3d.beacon import detect_beacons
 
     decoder = LmsDecoder(config.scanner.measuring_mode, scan_limits(config), header)
     decoder.feed_chunks(records)
-    scan, why = sweep_in(decoder.stream(), start_s + 0.2, end_s, config)
+    scan, why = sweep_in(decoder.stream(), start_s + DWELL_SETTLE_S, end_s, config)
     if scan is None:
         return {"dwell_s": [start_s, end_s], "scans": decoder.decoded, "why": why}
     detections, rejections = detect_beacons(scan.points_scanner, scan.reflector,

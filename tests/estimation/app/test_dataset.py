@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 
 from estimation.app.config import ConfigError
-from estimation.app.dataset import LmsDecoder, RobotStream, decode_robot, load_dataset
+from estimation.app.dataset import (
+    DWELL_SETTLE_S,
+    LmsDecoder,
+    RobotStream,
+    decode_robot,
+    load_dataset,
+    sweep_in,
+    with_dwell_sweeps,
+)
 from sensors.errors import SensorError
 from sensors.lms200.capture import CaptureReader, CaptureWriter
 from sensors.lms200.protocol.plausibility import ScanLimits
@@ -214,3 +222,33 @@ def test_a_corrupt_partial_note_is_a_one_line_error(
         path.write_text(note, encoding="utf-8")
     with pytest.raises(ConfigError, match=message):
         load_dataset(folder)
+
+
+def test_a_stream_holding_its_dwells_sweeps_gives_the_sweeps_its_scans_gave(
+    essex_simulated: Path,
+) -> None:
+    """``batch`` keeps one robot's scans at a time: the sweeps made from them while they are at
+    hand are the sweeps the event stream would have made, and the scans are let go."""
+    dataset = load_dataset(essex_simulated)
+    capture = essex_simulated / "robots" / "a" / "lms.cap"
+    stream = decode_robot(capture, dataset.config.scanner.measuring_mode)
+    held = with_dwell_sweeps(stream, dataset.events, dataset.config)
+    assert (held.scans, len(held.times_s)) == ([], 0)
+    assert (held.telegrams, held.undecodable) == (stream.telegrams, stream.undecodable)
+    dwells = [(n, e) for n, e in enumerate(dataset.events) if e["event"] == "dwell"]
+    assert sorted(held.dwell_sweeps) == [n for n, _ in dwells]
+    assert len(dwells) > 5
+    for number, entry in dwells:
+        made, why = held.sweep_of(number, entry, dataset.config)
+        expected, expected_why = sweep_in(
+            stream, entry["t_s"] + DWELL_SETTLE_S, entry["end_s"], dataset.config
+        )
+        assert why == expected_why
+        assert (made is None) == (expected is None)
+        if made is not None and expected is not None:
+            np.testing.assert_array_equal(made.points_scanner, expected.points_scanner)
+            np.testing.assert_array_equal(made.reflector, expected.reflector)
+    # A dwell it does not hold is made from the scans it holds (none now): no sweep, and why.
+    number, entry = dwells[0]
+    empty = with_dwell_sweeps(stream, [], dataset.config)
+    assert empty.sweep_of(number, entry, dataset.config) == (None, "only 0 scans in the dwell")

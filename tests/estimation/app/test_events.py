@@ -10,6 +10,7 @@ import pytest
 
 from estimation.app import events
 from estimation.app.config import Config
+from estimation.app.dataset import RobotStream
 from estimation.app.events import EventMaker, _closing, _motion, _not_held, _pair, _third
 from estimation.posegraph.events import Move, Observe, Start
 from estimation.posegraph.graph import GraphSettings, odometry_covariance
@@ -331,19 +332,24 @@ def test_a_beacon_seen_where_a_robot_that_stood_still_was_observed_is_that_robot
             entry = {"event": "dwell", "t_s": 10.0 * number, "end_s": 10.0 * number + 5.0,
                      "poses": {"a": 0, "b": 0, "c": 0}, "reference": reference,
                      "mapper": mapper}  # fmt: skip
-            made += [e for e in maker.feed(number, entry, {r: r for r in "abc"})
+            # A sweep is only its robot's name here; its detections are the test's.
+            streams = {
+                r: RobotStream(
+                    [],
+                    np.zeros(0),
+                    dwell_sweeps={
+                        number: (SimpleNamespace(points_scanner=r, reflector=None), None)
+                    },
+                )
+                for r in "abc"
+            }
+            made += [e for e in maker.feed(number, entry, streams)
                      if isinstance(e, Observe)]  # fmt: skip
             if forget:
                 maker.held.clear()
         return maker, made
 
     with pytest.MonkeyPatch.context() as patch:
-        # A sweep is only its robot's name here; its detections are the test's.
-        patch.setattr(
-            events,
-            "sweep_in",
-            lambda robot, *_: (SimpleNamespace(points_scanner=robot, reflector=None), ""),
-        )
         patch.setattr(events, "detect_beacons", lambda robot, *_, **__: (observed[robot], None))
         maker, (first, second) = mission(forget=False)
         assert (first.a_m, first.b_m) == (a_sees_c.range_m, c_sees_a.range_m)
