@@ -387,8 +387,8 @@ def decode_robot(
 def with_dwell_sweeps(stream: RobotStream, events: list[dict[str, Any]],
                       config: Config) -> RobotStream:  # fmt: skip
     """``stream`` holding the sweep of every dwell of the event log instead of its scans: what
-    the estimator takes of a decoded capture, in a tenth of its memory (office_loop: 38,000
-    scans, 130 MB, per robot). ``sweep_of`` gives the same sweeps as from the scans."""
+    the estimator takes of a decoded capture (office_loop, per robot: 75 sweeps, 48 MB,
+    instead of 38,000 scans, 130 MB). ``sweep_of`` gives the same sweeps as from the scans."""
     sweeps = {n: stream.sweep_of(n, e, config)
               for n, e in enumerate(events) if e["event"] == "dwell"}  # fmt: skip
     return replace(stream, scans=[], times_s=stream.times_s[:0], dwell_sweeps=sweeps)
