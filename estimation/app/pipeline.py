@@ -157,6 +157,7 @@ def prepare(
         why = "; ".join(stream.counts.missing_sweeps[:3]) or "the dataset has no dwells"
         raise EstimationError(f"{dataset.path}: no sweep in any dwell ({why})")
     timings = Timings(decode=decode, sweeps_and_beacons=sweeps + time.perf_counter() - clock)
+    _give_back_memory()  # the decoded scans
     return Prepared(
         dataset, streams, stream.events, stream.sweeps, stream.counts, stream.builder, timings
     )
@@ -171,7 +172,7 @@ def _malloc_trim() -> Callable[[int], int] | None:
         return None
 
 
-def give_back_memory() -> None:
+def _give_back_memory() -> None:
     """Return the heap the last stage freed to the system. glibc keeps freed memory in its
     arenas (one per thread that allocated), so a stage's working set stays in the process's
     RSS while the next stage adds its own (office_loop: 40 MB after decoding, 77 MB after the
@@ -413,7 +414,6 @@ def run_batch(
     out = Path(out_dir) if out_dir is not None else Path(dataset_dir) / "result"
     check_replaceable(out, "result")  # before the work, not after it
     prepared = prepare(dataset_dir, overrides, progress)
-    give_back_memory()
     dataset, builder = prepared.dataset, prepared.builder
     config = dataset.config
     params = station_params(config)
@@ -421,7 +421,7 @@ def run_batch(
     gauge = pose_key(dataset.robots[0], 0)
     dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
     searched = _search_stages(prepared, builder, params, progress)
-    give_back_memory()
+    _give_back_memory()  # the search threads' working sets, freed with the stages' maps
     factors, result = searched.factors, searched.result
     validation = None
     if searched.events:
@@ -540,6 +540,7 @@ def finish_isam(
     clock = time.perf_counter()
     params = station_params(config)
     searched = _search_stages(prepared, prepared.builder, params, progress)
+    _give_back_memory()  # the search threads' working sets, freed with the stages' maps
     for event in searched.events:
         smoother.add(event)
     smoother.settle()
