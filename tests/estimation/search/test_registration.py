@@ -297,6 +297,57 @@ def test_gauss_newton_kernel_matches_the_formula() -> None:
     np.testing.assert_allclose(g, J.T @ (w * r), atol=1e-10)
 
 
+@pytest.mark.parametrize(("apart", "settles"), [(3e-4, True), (5e-3, False)])
+def test_a_registration_traded_between_two_matchings_settles_midway_only_when_they_are_close(
+    monkeypatch: pytest.MonkeyPatch, apart: float, settles: bool
+) -> None:
+    """Two sets of nearest neighbours can hand the pose back and forth for every iteration
+    there is (a generated building's scan link: 0.3 mm apart, 0.0 cm from the truth, refused as
+    unconverged). Such a limit cycle has settled midway; one whose steps are millimetres has
+    not."""
+    rng = np.random.default_rng(1)
+    a, b = np.array([0.3, -0.2, 0.1]), np.array([-0.8, 0.6, 0.9])
+    target = Cloud.of(_seen_from(_room(rng), a), PARAMS)
+    source = Cloud.of(_seen_from(_room(rng), b), PARAMS)
+    truth = se2.between(a, b)
+    ends = [truth + np.array([apart / 2, 0.0, -apart / 2]),
+            truth - np.array([apart / 2, 0.0, -apart / 2])]  # fmt: skip
+    real = registration._linearised
+    calls = []
+
+    def trading(*args: object) -> object:
+        # The real system with its gradient replaced: each step lands on the other end.
+        found = real(*args)
+        if found is None:
+            return None
+        H, _, residuals, weights = found
+        pose = args[3]
+        calls.append(pose.copy())
+        goal = ends[len(calls) % 2]
+        return H, H @ registration._offset(pose, goal), residuals, weights
+
+    monkeypatch.setattr(registration, "_linearised", trading)
+    found = register(source, target, truth + np.array([0.02, -0.01, 0.01]), PARAMS)
+    assert found is not None
+    assert found.converged is settles
+    if settles:
+        assert found.accepted(PARAMS)
+        np.testing.assert_allclose(found.pose, truth, atol=1e-6)
+        assert found.iterations < 20
+    else:
+        assert found.iterations == PARAMS.iterations
+        assert not found.accepted(PARAMS)
+
+
+def test_a_limit_cycle_is_a_return_across_a_small_step() -> None:
+    before = np.array([1.0, 2.0, math.pi - 1e-5])
+    back = np.array([1.0 + 5e-5, 2.0, -math.pi + 1e-5])  # across the ±π seam
+    assert registration._cycled(back, before, np.array([4e-4, 0.0, 4e-4]))
+    assert not registration._cycled(back, before, np.array([2e-3, 0.0, 0.0]))  # steps too long
+    assert not registration._cycled(back + np.array([0.0, 2e-4, 0.0]), before,
+                                    np.array([4e-4, 0.0, 0.0]))  # fmt: skip
+
+
 def test_a_registration_that_slid_far_from_its_seed_is_not_accepted() -> None:
     """Past twice the reach its seed is good to, a converged registration with every point an
     inlier is still refused: it slid along what the points do not constrain."""
