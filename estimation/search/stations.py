@@ -18,7 +18,9 @@ the graph optimized again after each:
 * **loop closures** — each station against the map of the stations at least ``_MIN_AGE``
   older near it, in the frame of the nearest of them, over ±3σ of the predicted relative pose
   (σ from the graph's joint marginals); a dominant peak that passes the χ² gate against the
-  prediction becomes a factor.
+  prediction becomes a factor. A peak that stands out only once the prediction weighs the
+  poses is taken when its runner-up registers to the same pose (one mode drawn out along a
+  corridor, not two places the station could be).
 
 Each accepted search is a ``Localize`` event: a between-factor from the anchor station. After
 the ``changes`` step, each robot's last sweep is localized against the final map (ceiling band,
@@ -112,6 +114,10 @@ _MIN_OVERLAP = 0.1
 #: Below this overlap a link's search must also be dominant: of 2,632 links used in 8 generated
 #: buildings 9 were wrong, 2 of them among the 18 neither dominant nor overlapping by 20 %.
 _THIN_OVERLAP = 0.2
+#: A loop closure's best pose and its runner-up that register this close together (m, rad) lie
+#: in one basin.
+_ONE_BASIN_M = 0.01
+_ONE_BASIN_RAD = math.radians(0.1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -403,8 +409,17 @@ def scan_links(
     return _links(pairs, estimate, maps, ties, params)
 
 
-#: A loop closure's search: its result, whether the peak is dominant, the overlap, the seconds.
-_Searched = tuple[SearchResult, bool, float, float]
+@dataclass(frozen=True)
+class _Searched:
+    """A loop closure's search: its result, whether its peak is dominant alone and given the
+    prediction (``dominant``) or given the prediction only (``given``), the overlap at the
+    peak, and the seconds taken."""
+
+    result: SearchResult
+    dominant: bool
+    given: bool
+    overlap: float
+    seconds: float
 
 
 @dataclass(frozen=True)
@@ -466,19 +481,22 @@ def loop_closures(
             float(np.clip(2 * _LOOP_SIGMAS * sigma_m, *_LOOP_WINDOW_M)),
             float(np.clip(_LOOP_SIGMAS * sigma_rad, *_LOOP_YAW_RAD)),
         ))  # fmt: skip
-    searched = side_by_side(lambda c: _closure_search(c, search), closures, workers)
-    found = [(c, f) for c, f in zip(closures, searched, strict=True) if f is not None]
-    wanted = [(c, f) for c, f in found if f[1] and f[2] >= _MIN_OVERLAP]  # dominant, overlapping
+    answers = side_by_side(lambda c: _closure_search(c, search), closures, workers)
+    found = [(c, f) for c, f in zip(closures, answers, strict=True) if f is not None]
+    wanted = [(c, f) for c, f in found if f.given and f.overlap >= _MIN_OVERLAP]
     maps.prepare([s for c, _ in wanted for s in (c.station, *c.older)], estimate, ties, workers,
                  clouds=True)  # fmt: skip
 
     def refine(item: tuple[_Closure, _Searched]) -> tuple[_Refined, bool, float]:
-        closure, (result, _, _, _) = item
+        closure, searched = item
+        result = searched.result
         started = time.perf_counter()
         cloud = maps.cloud(closure.station, estimate, ties)
-        refined = _refined(result, cloud,
-                           maps.older_cloud(closure.anchor, closure.older, estimate, ties),
-                           params)  # fmt: skip
+        older = maps.older_cloud(closure.anchor, closure.older, estimate, ties)
+        refined = _refined(result, cloud, older, params)
+        if not searched.dominant and not _one_basin(result, refined, cloud, older, params):
+            refused = _Refined(refined.pose, None, refined.registration, False)
+            return refused, False, time.perf_counter() - started
         if len(closure.older) > 1:
             # The older stations lie in the anchor's frame where the estimate puts them; its own
             # map does not depend on the estimate. When the station registers soundly on it,
@@ -499,7 +517,8 @@ def loop_closures(
                            strict=True))  # fmt: skip
     events: list[Localize] = []
     records: list[SearchRecord] = []
-    for closure, (result, dominant, overlap, seconds) in found:
+    for closure, searched in found:
+        result, seconds = searched.result, searched.seconds
         refined = _Refined(np.asarray(result.pose, dtype=float), None, None, False)
         use = False
         if id(closure) in refinements:
@@ -511,9 +530,10 @@ def loop_closures(
         records.append(
             SearchRecord(
                 station=closure.station.label, against=closure.anchor.label, band="ceiling",
-                kind="loop", peak_ratio=float(result.peak_ratio), dominant=dominant,
+                kind="loop", peak_ratio=float(result.peak_ratio), dominant=searched.dominant,
                 used=use, seconds=seconds, time_s=closure.station.time_s,
-                overlap=overlap, picture=SearchPicture.of(result, closure.local, closure.global_),
+                overlap=searched.overlap,
+                picture=SearchPicture.of(result, closure.local, closure.global_),
                 **refined.record_fields(result),
             )
         )  # fmt: skip
@@ -521,8 +541,7 @@ def loop_closures(
 
 
 def _closure_search(closure: _Closure, search: SearchParams) -> _Searched | None:
-    """A loop closure's search: the result, whether its peak is dominant, the overlap at it,
-    and the seconds taken; None when the search cannot run."""
+    """A loop closure's search (:class:`_Searched`); None when the search cannot run."""
     started = time.perf_counter()
     try:
         result, on_edge = _search_near(closure.local, closure.global_, search, closure.predicted,
@@ -530,12 +549,32 @@ def _closure_search(closure: _Closure, search: SearchParams) -> _Searched | None
     except EstimationError:
         return None
     # Dominant alone and beside the prediction: in a repeating room chance picks a repeat.
-    dominant = (
-        result.is_dominant(search.dominance_ratio) and not on_edge
-        and result.dominant_given(closure.predicted, closure.uncertainty, search)
-    )  # fmt: skip
+    given = not on_edge and result.dominant_given(closure.predicted, closure.uncertainty, search)
+    dominant = given and result.is_dominant(search.dominance_ratio)
     overlap = overlap_fraction(closure.local, closure.global_, result.pose)
-    return result, dominant, overlap, time.perf_counter() - started
+    return _Searched(result, dominant, given, overlap, time.perf_counter() - started)
+
+
+def _one_basin(result: SearchResult, refined: _Refined, source: Cloud | None,
+               target: Cloud | None, params: StationParams) -> bool:  # fmt: skip
+    """Whether the search's runner-up (its best pose outside the peak) registers soundly where
+    its best pose did (``refined``): a peak that stands out only given the prediction is then
+    one mode drawn out along a ridge (the ceiling of a corridor: generated building 0's
+    runner-up lay 0.5 m down the corridor and both registered 0.3 cm from the truth), not one
+    of two places the station could be. Without registration, never."""
+    if not refined.sound or refined.registration is None:
+        return False
+    search = params.station_search
+    modes = result.modes(2, search.peak_radius_m, search.peak_radius_rad)
+    if len(modes) < 2:
+        return True  # no other pose holds any probability
+    other = _refined(result, source, target, params, seed=modes[1])
+    turn = abs(math.remainder(float(other.pose[2] - refined.pose[2]), 2 * math.pi))
+    return (
+        other.sound
+        and math.dist(other.pose[:2], refined.pose[:2]) < _ONE_BASIN_M
+        and turn < _ONE_BASIN_RAD
+    )
 
 
 def _anchor(

@@ -431,6 +431,47 @@ def test_a_loop_closure_registers_on_its_anchor_alone_when_the_older_stations_dr
     assert abs(math.remainder(event.pose[2] - expected[2], 2 * math.pi)) < math.radians(0.05)
 
 
+@pytest.mark.parametrize(
+    ("runner_up", "registration", "used"),
+    [("down the ridge", True, True),  # it registers where the peak did
+     ("half a turn", True, False),  # the room's twin pose: it registers there, soundly
+     ("far", True, False),  # 2.5 m off: it registers nowhere
+     ("down the ridge", False, False)],  # no registration to tell them apart
+)  # fmt: skip
+def test_a_loop_closure_dominant_only_given_its_prediction_needs_one_basin(
+    monkeypatch: pytest.MonkeyPatch, runner_up: str, registration: bool, used: bool
+) -> None:
+    """A peak that does not stand out alone (a corridor's ceiling draws it out along the axis:
+    generated building 0's runner-up lay 0.5 m down the corridor) but does once the prediction
+    weighs the poses is taken when its runner-up registers to the same pose; a runner-up that
+    registers elsewhere (the box room turned by half a turn about its centre looks the same) is
+    another place the station could be."""
+    stations, factors, truth = revisiting_mission()
+    b1, b5 = truth[pose_key("b", 1)], truth[pose_key("b", 5)]
+    twin = np.array([ROOM[0] - b5[0], ROOM[1] - b5[1], b5[2] + math.pi])
+    other = {"down the ridge": se2.compose(se2.between(b1, b5), np.array([0.2, -0.1, 0.02])),
+             "half a turn": se2.between(b1, twin),
+             "far": se2.between(b1, b5) + np.array([2.5, 1.0, 0.0])}[runner_up]  # fmt: skip
+    monkeypatch.setattr(SearchResult, "is_dominant", lambda self, ratio: False)
+    monkeypatch.setattr(
+        SearchResult,
+        "modes",
+        lambda self, count, radius_m, radius_rad: [np.asarray(self.pose, dtype=float), other],
+    )
+    params = dataclasses.replace(
+        TOLERANT, registration=RegistrationParams() if registration else None
+    )
+    events, records = loop_closures(stations, dict(truth), factors, params,
+                                    only={pose_key("b", 5)})  # fmt: skip
+    assert [(r.station, r.against, r.dominant, r.used) for r in records] == [
+        ("b5", "b1", False, used)
+    ]
+    assert len(events) == int(used)
+    if used:
+        expected = se2.between(b1, b5)
+        assert math.dist(events[0].pose[:2], expected[:2]) < 0.01
+
+
 def test_a_loop_closure_is_anchored_on_the_nearest_tied_station(mission) -> None:
     """An older station whose heading rests on odometry alone (no mutual observation) is no
     anchor while a tied one is near: the closure's frame would carry its error."""
