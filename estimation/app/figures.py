@@ -365,7 +365,7 @@ def render_search_pdf(picture: Any, pose: np.ndarray, path: Path | str, *, title
     """A search's position PDF (paper Fig. 5b): P(x, y) summed over the rotations as a surface
     over the window searched, beside the map searched with the local band's occupied cells at the
     best pose and the window outlined. ``picture`` is an
-    ``estimation.search.stations.SearchPicture``; ``pose`` the best pose in its map's frame."""
+    ``estimation.search.records.SearchPicture``; ``pose`` the best pose in its map's frame."""
     from mpl_toolkits.mplot3d import Axes3D  # noqa: F401 - registers the 3d projection
 
     path = Path(path)

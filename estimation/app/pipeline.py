@@ -51,14 +51,9 @@ from estimation.posegraph.smoother import (
     optimize_batch,
 )
 from estimation.posegraph.validate import validate_and_repair
+from estimation.search.records import SearchRecord, records_json
 from estimation.search.relocalization import relocalize
-from estimation.search.stations import (
-    SEARCH_STAGES,
-    SearchRecord,
-    StationMaps,
-    StationParams,
-    records_json,
-)
+from estimation.search.stations import SEARCH_STAGES, StationMaps, StationParams
 from mapping.fusion import Scan as MapScan
 from mapping.fusion import fuse_scans
 from mapping.grid import GridParams

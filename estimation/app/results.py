@@ -34,7 +34,7 @@ from sensors.trajio import G2oGraph, write_g2o, write_tum
 if TYPE_CHECKING:
     from estimation.app.dataset import Sweep
     from estimation.posegraph.graph import FactorSpec
-    from estimation.search.stations import SearchRecord
+    from estimation.search.records import SearchRecord
     from mapping.grid import OccupancyGrid
 
 __all__ = [

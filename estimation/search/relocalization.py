@@ -11,6 +11,7 @@ import numpy as np
 
 from estimation.errors import EstimationError
 from estimation.search.exhaustive import overlap_fraction, windowed_search
+from estimation.search.records import SearchPicture, SearchRecord, pose_of
 from estimation.search.registration import Cloud, Registration, register
 from estimation.search.station_maps import (
     Dwell,
@@ -19,7 +20,6 @@ from estimation.search.station_maps import (
     cloud_of_views,
     fuse_band,
 )
-from estimation.search.stations import SearchPicture, SearchRecord, pose_of
 from mapping.band import Band
 
 __all__ = ["relocalize"]

@@ -33,7 +33,7 @@ import functools
 import math
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -51,6 +51,7 @@ from estimation.search.exhaustive import (
     result_from_scores,
 )
 from estimation.search.lattice import pose_lattice
+from estimation.search.records import SearchPicture, SearchRecord, pose_of
 from estimation.search.registration import Cloud, Registration, register
 from estimation.search.station_maps import (
     Dwell,
@@ -69,15 +70,11 @@ from sensors.geometry import se2
 __all__ = [
     "SEARCH_STAGES",
     "Dwell",
-    "SearchPicture",
-    "SearchRecord",
     "Station",
     "StationMaps",
     "StationParams",
     "View",
     "loop_closures",
-    "pose_of",
-    "records_json",
     "scan_links",
     "searched_with",
     "station_links",
@@ -120,45 +117,6 @@ _ONE_BASIN_M = 0.01
 _ONE_BASIN_RAD = math.radians(0.1)
 
 
-@dataclass(frozen=True, eq=False)
-class SearchPicture:
-    """What a figure of one search draws (the paper's Fig. 5b): the position PDF summed over the
-    rotations, on the lattice searched, and the two bands matched, in the frame of the band
-    searched against."""
-
-    x_m: np.ndarray  # (X,)
-    y_m: np.ndarray  # (Y,)
-    marginal: np.ndarray  # (Y, X) float32, sums to 1
-    against: Band  # the map searched
-    local: Band  # the station's (or the sweep's) band, in its own frame
-
-    @classmethod
-    def of(cls, result: SearchResult, local: Band, against: Band) -> SearchPicture:
-        marginal = result.prob.sum(axis=0, dtype=np.float64).astype(np.float32)
-        return cls(result.x_m, result.y_m, marginal, against, local)
-
-
-@dataclass(frozen=True)
-class SearchRecord:
-    """One search: what was matched against what, and the answer; loop closures and
-    relocalizations keep their :class:`SearchPicture` for the result's figures."""
-
-    station: str  # "a3"
-    against: str  # the anchor station's label, or "map"
-    kind: str  # "link" (predecessor), "loop" (older stations) or "relocalize"
-    band: str  # "ceiling" or "floor"
-    pose: tuple[float, float, float]  # in the anchor's (or the map's) frame
-    peak_ratio: float
-    dominant: bool
-    used: bool  # became a factor
-    seconds: float
-    time_s: float  # when the station's sweeps were taken
-    overlap: float = math.nan  # share of the local map's known cells on known map cells
-    searched: tuple[float, float, float] | None = None  # the search's pose when refined
-    inliers: float = math.nan  # the registration's share of corresponding points
-    picture: SearchPicture | None = field(default=None, compare=False, repr=False)
-
-
 def _search_near(
     local: Band,
     global_: Band,
@@ -183,12 +141,6 @@ def _search_near(
     result = result_from_scores(scores, x_m, y_m, yaw_rad, params, started, (local, global_))
     _, by, bx = result.best_index
     return result, bx in (0, len(x_m) - 1) or by in (0, len(y_m) - 1)
-
-
-def pose_of(result: SearchResult) -> tuple[float, float, float]:
-    """The search's best pose as three floats (a record's ``pose``)."""
-    x, y, yaw = (float(v) for v in result.pose)
-    return x, y, yaw
 
 
 @dataclass(frozen=True)
@@ -622,16 +574,3 @@ SEARCH_STAGES = (
     ("links of unobserved scans", scan_links),
     ("loop closures", loop_closures),
 )
-
-
-def records_json(records: list[SearchRecord]) -> list[dict[str, Any]]:
-    return [
-        {
-            **{k: v for k, v in r.__dict__.items() if k not in ("picture", "searched", "inliers")},
-            "pose": [round(v, 6) for v in r.pose],
-            "overlap": round(r.overlap, 4),
-            **({} if r.searched is None else {"searched": [round(v, 6) for v in r.searched]}),
-            **({} if math.isnan(r.inliers) else {"inliers": round(r.inliers, 4)}),
-        }
-        for r in records
-    ]

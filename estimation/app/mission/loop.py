@@ -54,7 +54,7 @@ from estimation.app.rig import scan_limits, station_params
 from estimation.app.sim.planning import as_spec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import IncrementalSmoother
-from estimation.search.stations import records_json
+from estimation.search.records import records_json
 from mapping.errors import MapError
 from mapping.traversability import Room
 from sensors.atomic import write_text_atomic

@@ -12,7 +12,7 @@ from matplotlib.image import imread
 
 from estimation.app.figures import _block_max, render_search_pdf, render_sweep, render_trajectories
 from estimation.app.results import MAX_PDF_FIGURES, _pdf_figures
-from estimation.search.stations import SearchPicture, SearchRecord, records_json
+from estimation.search.records import SearchPicture, SearchRecord, records_json
 from mapping.band import Band
 from mapping.figures import UNKNOWN_COLOR
 
