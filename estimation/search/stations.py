@@ -198,11 +198,13 @@ def _refined(
     return _Refined(found.pose, found.covariance, found, found.accepted(settings))
 
 
-def _near(pose: np.ndarray, predicted: np.ndarray) -> bool:
-    """A link's pose agrees with the prediction across the turn between the stations."""
+def _near(pose: np.ndarray, other: np.ndarray, within_m: float = _LINK_CONSISTENT_M,
+          within_rad: float = _LINK_CONSISTENT_RAD) -> bool:  # fmt: skip
+    """Two poses agree to ``within_m`` and ``within_rad`` (by default: a link's pose agrees with
+    the prediction across the turn between the stations)."""
     return (
-        math.dist(pose[:2], predicted[:2]) < _LINK_CONSISTENT_M
-        and abs(math.remainder(float(pose[2] - predicted[2]), 2 * math.pi)) < _LINK_CONSISTENT_RAD
+        math.dist(pose[:2], other[:2]) < within_m
+        and abs(math.remainder(float(pose[2] - other[2]), 2 * math.pi)) < within_rad
     )
 
 
@@ -521,12 +523,7 @@ def _one_basin(result: SearchResult, refined: _Refined, source: Cloud | None,
     if len(modes) < 2:
         return True  # no other pose holds any probability
     other = _refined(result, source, target, params, seed=modes[1])
-    turn = abs(math.remainder(float(other.pose[2] - refined.pose[2]), 2 * math.pi))
-    return (
-        other.sound
-        and math.dist(other.pose[:2], refined.pose[:2]) < _ONE_BASIN_M
-        and turn < _ONE_BASIN_RAD
-    )
+    return other.sound and _near(other.pose, refined.pose, _ONE_BASIN_M, _ONE_BASIN_RAD)
 
 
 def _anchor(
