@@ -228,9 +228,10 @@ def _finish(
     out: Path,
     extra: dict[str, Any],
     searches: list[SearchRecord],
+    figures: bool = True,
 ) -> BatchOutput:
     """Re-fuse every sweep at its optimized pose, then write the result directory (``searches``:
-    the mission's search records, for the figures of their PDFs)."""
+    the mission's search records, for the figures of their PDFs; ``figures`` False: none drawn)."""
     dataset = prepared.dataset
     config = dataset.config
     clock = time.perf_counter()
@@ -298,7 +299,7 @@ def _finish(
     output = BatchOutput(
         out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances, searches
     )
-    write_results(output, config)
+    write_results(output, config, figures=figures)
     return output
 
 
@@ -404,8 +405,10 @@ def run_batch(
     *,
     overrides: dict[str, Any] | None = None,
     progress: Progress | None = None,
+    figures: bool = True,
 ) -> BatchOutput:
-    """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results."""
+    """Decode, detect, build the graph, optimize in batch, re-fuse the map, write the results
+    (with their figures unless ``figures`` is False)."""
     out = Path(out_dir) if out_dir is not None else Path(dataset_dir) / "result"
     check_replaceable(out, "result")  # before the work, not after it
     prepared = prepare(dataset_dir, overrides, progress)
@@ -453,7 +456,7 @@ def run_batch(
         },
     }
     solution = Solution(builder, factors, result.estimate, result.inliers, dropped)
-    return _finish(prepared, solution, timings, out, extra, searched.records + relocalized)
+    return _finish(prepared, solution, timings, out, extra, searched.records + relocalized, figures)
 
 
 def run_isam(
@@ -465,6 +468,7 @@ def run_isam(
     checkpoint_every: int = 5,
     stop_after: int | None = None,
     progress: Progress | None = None,
+    figures: bool = True,
 ) -> BatchOutput | None:
     """The same events fed one by one to iSAM2, checkpointing as it goes.
 
@@ -496,7 +500,7 @@ def run_isam(
             return None
     optimize_s = time.perf_counter() - clock
     output = finish_isam(prepared, smoother, out, optimize_s=optimize_s, progress=progress,
-                         extra={"resumed": resume})  # fmt: skip
+                         extra={"resumed": resume}, figures=figures)  # fmt: skip
     checkpoint.unlink(missing_ok=True)
     return output
 
@@ -522,6 +526,7 @@ def finish_isam(
     progress: Progress | None = None,
     extra: dict[str, Any] | None = None,
     report: dict[str, Any] | None = None,
+    figures: bool = True,
 ) -> BatchOutput:
     """After iSAM2 consumed the mission's events: the searches, settling, the map, the result.
 
@@ -558,5 +563,5 @@ def finish_isam(
                    "update_median_ms": float(np.median(update_ms)) if len(update_ms) else 0.0,
                    "update_max_ms": float(update_ms.max()) if len(update_ms) else 0.0},
          **(report or {})},
-        searched.records + relocalized,
+        searched.records + relocalized, figures,
     )  # fmt: skip

@@ -100,7 +100,9 @@ def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
     return graph, ids
 
 
-def write_results(output: BatchOutput, config: Config) -> None:
+def write_results(output: BatchOutput, config: Config, *, figures: bool = True) -> None:
+    """The result folder (docs/results.md), replacing an earlier result atomically; without
+    ``figures`` the folder has no ``figures/`` (drawing them is a third of ``batch``'s time)."""
     with replace_directory(output.out_dir, "result") as work:
         for robot, poses in output.poses.items():
             if not poses:
@@ -128,7 +130,9 @@ def write_results(output: BatchOutput, config: Config) -> None:
             output.report["ceiling"] = f"not written: {exc}"
         output.report["occupied_voxels"] = occupied
         output.report["g2o_vertices"] = {key_label(k): n for k, n in ids.items()}
-        output.report["figures"] = write_figures(output, ceiling, work / "figures")
+        output.report["figures"] = (
+            write_figures(output, ceiling, work / "figures") if figures else {"drawn": False}
+        )
         header = f"# effective configuration; coopmap {__version__}\n"
         write_text_atomic(work / "config.yaml", header + config_to_yaml(config))
         write_text_atomic(work / "report.md", report_markdown(output))
@@ -173,7 +177,7 @@ def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str,
         render_trajectories,
     )
 
-    drawn: dict[str, Any] = {}
+    drawn: dict[str, Any] = {"drawn": True}
     if ceiling is not None:
         render_trajectories(ceiling, output.poses, figures / "ceiling_trajectories.png")
         drawn["ceiling"] = "ceiling_trajectories.png"
@@ -251,12 +255,12 @@ def report_markdown(output: BatchOutput, metrics: dict[str, Any] | None = None) 
         "",
         "Timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items()),
         "",
-        "![ceiling band and trajectories](figures/ceiling_trajectories.png)",
-        "",
-        "![occupied cells](figures/map_cubes.png)",
-        "",
     ]
     figures = r.get("figures", {})
+    if "ceiling" in figures:
+        lines += [f"![ceiling band and trajectories](figures/{figures['ceiling']})", ""]
+    if "map" in figures:
+        lines += [f"![occupied cells](figures/{figures['map']})", ""]
     if "sweep" in figures:
         lines += [f"![one measured sweep](figures/{figures['sweep']['file']})", ""]
     for name in figures.get("pdfs", []):

@@ -12,6 +12,7 @@ import typer
 
 from estimation.app.cli.common import (
     ConfigOption,
+    FiguresOption,
     JsonOption,
     cli_errors,
     make_console,
@@ -190,6 +191,7 @@ def batch(
     view_port: ViewPortOption = 8765,
     view_host: ViewHostOption = "127.0.0.1",
     view_seconds: ViewSecondsOption = None,
+    figures: FiguresOption = True,
 ) -> None:
     """Batch optimization (Levenberg–Marquardt with GNC), then fusion of the global 3D map."""
     from estimation.app.pipeline import run_batch
@@ -199,7 +201,9 @@ def batch(
     with live_view(view, view_host, view_port) as live:
         err = make_console(stderr=True)
         with err.status(f"processing {dataset}…", spinner="dots") as status:
-            output = run_batch(dataset, out, overrides=overrides, progress=status.update)
+            output = run_batch(
+                dataset, out, overrides=overrides, progress=status.update, figures=figures
+            )
         print_batch(output.report, output.out_dir)
         export_mcap(output.out_dir, mcap, dataset)
         serve_result(live, output.out_dir, dataset, view_seconds)
@@ -312,6 +316,7 @@ def isam(
     view_port: ViewPortOption = 8765,
     view_host: ViewHostOption = "127.0.0.1",
     view_seconds: ViewSecondsOption = None,
+    figures: FiguresOption = True,
 ) -> None:
     """Incremental iSAM2 over the same data, event by event, with checkpoints."""
     from estimation.app.pipeline import run_isam
@@ -322,7 +327,12 @@ def isam(
         err = make_console(stderr=True)
         with err.status(f"processing {dataset} event by event…", spinner="dots") as status:
             output = run_isam(
-                dataset, out, overrides=overrides, resume=resume, progress=status.update
+                dataset,
+                out,
+                overrides=overrides,
+                resume=resume,
+                progress=status.update,
+                figures=figures,
             )
         assert output is not None
         r = output.report

@@ -171,3 +171,19 @@ def test_evaluate_draws_the_ceiling_under_the_true_walls(dataset: Path) -> None:
     assert metrics["figures"] == {"ceiling_truth": "ceiling_truth.png"}
     path = dataset / "result" / "figures" / "ceiling_truth.png"
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_result_without_figures_is_the_same_result_without_them(
+    dataset: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "plain"
+    output = run_batch(dataset, out, figures=False)
+    assert not (out / "figures").exists()
+    assert output.report["figures"] == {"drawn": False}
+    assert json.loads((out / "report.json").read_text())["figures"] == {"drawn": False}
+    assert "figures/" not in (out / "report.md").read_text()
+    for robot in ("a", "b"):
+        drawn = read_tum(dataset / "result" / "poses" / f"{robot}.tum")
+        plain = read_tum(out / "poses" / f"{robot}.tum")
+        np.testing.assert_array_equal(plain[1], drawn[1])
+    assert (out / "map.npz").read_bytes() == (dataset / "result" / "map.npz").read_bytes()

@@ -221,3 +221,24 @@ def test_evaluate_prints_relocalization_after_the_changes(
         "0.38°" in lines  # fmt: skip
     assert "relocalization (floor band): 1 of 2 within 10 cm and 1°, median error 10.7 cm / " \
         "0.25°" in lines  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["batch", "isam"])
+@pytest.mark.parametrize(("flag", "drawn"), [([], True), (["--figures"], True),
+                                             (["--no-figures"], False)])  # fmt: skip
+def test_batch_and_isam_pass_the_figures_choice_on(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, command: str, flag: list[str], drawn: bool
+) -> None:
+    asked: list[bool] = []
+
+    class StopError(Exception):
+        pass
+
+    def runner(*_: object, figures: bool, **__: object) -> None:
+        asked.append(figures)
+        raise StopError
+
+    monkeypatch.setattr(f"estimation.app.pipeline.run_{command}", runner)
+    code, _, _ = run(command, str(tmp_path), *flag)
+    assert code != 0  # the stand-in stops the run
+    assert asked == [drawn]
