@@ -1,9 +1,10 @@
 """Scan integration: one scan's end points and rays into the grid, resumable.
 
-End cells are updated first (occupied), then the free rays to them, then the free rays of
-no-return beams (``PHASE_*``); the traversal is ``mapping.kernels.traversal``. When the block
-pool is full the kernel returns the phase and index to resume from; the caller grows the pool
-and calls again.
+End cells are updated first (occupied), then the free rays to them and the free rays of
+no-return beams are traced, and last the cells those marked in the scan's cube are updated
+(free) (``PHASE_*``); the traversal is ``mapping.kernels.traversal``. When the block pool is
+full the kernel returns the phase and index to resume from; the caller grows the pool and
+calls again.
 """
 
 from __future__ import annotations
@@ -13,11 +14,20 @@ import math
 import numpy as np
 from numba import njit
 
-from mapping.kernels.cube import CUBE_HALF, CUBE_SIDE, apply_fresh, morton, reset_cube
+from mapping.kernels.cube import (
+    CUBE_HALF,
+    CUBE_SIDE,
+    apply_fresh,
+    apply_marked,
+    morton,
+    reset_cube,
+    unmark,
+)
 from mapping.kernels.traversal import trace_rays, visit_cells
 
-#: Kernel phases: occupied end points, free rays to end points, free rays of no-return beams.
-PHASE_HITS, PHASE_RAYS, PHASE_FREE, PHASE_DONE = 0, 1, 2, 3
+#: Kernel phases: occupied end points, free rays to end points, free rays of no-return beams,
+#: the free cells the rays marked in the cube (``start``: the Morton index to resume from).
+PHASE_HITS, PHASE_RAYS, PHASE_FREE, PHASE_APPLY, PHASE_DONE = 0, 1, 2, 3, 4
 
 
 @njit(cache=True)
@@ -85,7 +95,7 @@ def integrate(
     phase: int,
     start: int,
 ) -> tuple[int, int]:
-    """Integrate one scan; returns (phase, index) to resume from, phase 3 when done.
+    """Integrate one scan; returns (phase, index) to resume from, ``PHASE_DONE`` when done.
 
     ``hits`` (N, 3): end points of returns; ``free_ends`` (M, 3): where no-return beams stop
     giving free evidence; ``sensor`` (3,): the sensor origin — all in the grid's frame.
@@ -136,8 +146,6 @@ def integrate(
         stop = visit_cells(
             outside[:n_out],
             0,
-            corner,
-            cube,
             table_keys,
             table_vals,
             shift,
@@ -195,5 +203,29 @@ def integrate(
             return current, stop
         phase = current + 1
         start = 0
+    # The end cells took their (occupied) update first; the rays marked them too.
+    unmark(hits, grid_origin, inv_res, corner, cube)
+    stop = apply_marked(
+        start,
+        corner,
+        cube,
+        table_keys,
+        table_vals,
+        shift,
+        block_coords,
+        count,
+        logodds,
+        known,
+        block_scan,
+        updates,
+        lut,
+        bs,
+        lg,
+        l_miss,
+        l_min,
+        l_max,
+    )
+    if stop >= 0:
+        return PHASE_APPLY, stop
     reset_cube(cube)
     return PHASE_DONE, 0

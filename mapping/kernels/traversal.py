@@ -1,8 +1,10 @@
 """Voxel traversal of rays through the grid, updating each cell once per scan.
 
 ``trace_rays`` walks rays from the sensor (Amanatides–Woo), in the scan's cube
-(``mapping.kernels.cube``) while they are in it; ``visit_cells`` is the general per-cell path
-(end points, and the cells of rays beyond the cube), de-duplicated by the per-block bits.
+(``mapping.kernels.cube``) while they are in it, and only marks the cells it crosses there:
+the marked cells are updated afterwards, block by block, in the bitmap's order
+(``cube.apply_marked``). ``visit_cells`` is the general per-cell path (end points, and the
+cells of rays beyond the cube), de-duplicated by the per-block bits and updated at once.
 ``ray_cells`` lists the cells of one segment, without storage.
 
 Per-scan de-duplication outside the cube uses one bit per cell (``flags``, (capacity, bs³ / 8)
@@ -10,8 +12,9 @@ uint8), valid for the scan whose id is in ``block_scan`` (capacity,): a block's 
 lazily the first time the scan reaches it. The bits are small enough to stay in cache, so a ray
 costs little in cells that other rays of the scan have already updated.
 
-A cell is flagged when updated and a flagged cell is skipped for the rest of the scan, so
-resuming after the pool ran out of blocks (even mid-ray) is exact.
+A cell is flagged when updated and a flagged cell is skipped for the rest of the scan, and a
+cube cell is marked however often a ray crosses it, so resuming after the pool ran out of
+blocks (even mid-ray) is exact.
 """
 
 from __future__ import annotations
@@ -29,7 +32,6 @@ from mapping.kernels.cube import (
     MX,
     MY,
     MZ,
-    apply_fresh,
     morton,
 )
 
@@ -59,8 +61,6 @@ def _flush(
 def visit_cells(
     cells: np.ndarray,
     start: int,
-    corner: np.ndarray,
-    cube: np.ndarray,
     table_keys: np.ndarray,
     table_vals: np.ndarray,
     shift: int,
@@ -80,7 +80,8 @@ def visit_cells(
     l_min: float,
     l_max: float,
 ) -> int:
-    """Update each cell of (K, 3) ``cells`` (from ``start``) unless this scan has seen it.
+    """Update each cell of (K, 3) ``cells`` (from ``start``), all outside the scan's cube, unless
+    this scan has seen it (the per-block bits).
 
     The general path, for end points and for the rare rays that leave the cube. Returns K, or
     the index of the cell where the pool ran out of blocks (that cell is left unseen).
@@ -93,18 +94,6 @@ def visit_cells(
         ix = cells[c, 0]
         iy = cells[c, 1]
         iz = cells[c, 2]
-        cx = ix - corner[0]
-        cy = iy - corner[1]
-        cz = iz - corner[2]
-        in_cube = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
-        m = 0
-        if in_cube:
-            m = morton(cx, cy, cz)
-            seen = np.int64(cube[m >> 3])
-            if seen & (1 << (m & 7)):
-                continue
-            cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
-            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
         bx, lx = locate(ix, bs, lg)
         by, ly = locate(iy, bs, lg)
         bz, lz = locate(iz, bs, lg)
@@ -126,8 +115,6 @@ def visit_cells(
                     bz,
                 )
             if blk < 0:
-                if in_cube:
-                    cube[m >> 3] = np.uint8(np.int64(cube[m >> 3]) & ~(1 << (m & 7)))
                 stop = c
                 break
             if block_scan[blk] != scan_id:
@@ -135,11 +122,10 @@ def visit_cells(
                 flags[blk, :] = 0
             last = key
         flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
-        if not in_cube:
-            seen = np.int64(flags[blk, flat >> 3])
-            if seen & (1 << (flat & 7)):
-                continue
-            flags[blk, flat >> 3] = np.uint8(seen | (1 << (flat & 7)))
+        seen = np.int64(flags[blk, flat >> 3])
+        if seen & (1 << (flat & 7)):
+            continue
+        flags[blk, flat >> 3] = np.uint8(seen | (1 << (flat & 7)))
         n = pending[0, 0] + 1
         pending[0, n] = blk
         pending[1, n] = flat
@@ -185,8 +171,8 @@ def trace_rays(
     Amanatides–Woo traversal, with the number of steps per axis fixed in advance by the two end
     cells, so the walk ends exactly in the end cell whatever the rounding. Ties (a ray through
     an edge or corner) step z before y before x, as OctoMap's comparisons do. Rays within
-    the cube step through its Morton-ordered bitmap and collect the cells not yet seen in
-    ``fresh``, which is applied in batches.
+    the cube step through its Morton-ordered bitmap and only mark their cells there (a few bit
+    operations a step, no lookup); ``apply_marked`` updates them once every ray is done.
     """
     inf = math.inf
     ox, oy, oz = o[0], o[1], o[2]
@@ -194,10 +180,6 @@ def trace_rays(
     iy0 = math.floor(oy)
     iz0 = math.floor(oz)
     m0 = morton(ix0 - corner[0], iy0 - corner[1], iz0 - corner[2])
-    n_cap = 16384
-    fresh = np.empty(n_cap, dtype=np.int64)
-    n_fresh = 0
-    batch_start = start
     outside = np.empty((4096, 3), dtype=np.int64)
     for n in range(start, len(ends)):
         ex = (ends[n, 0] - grid_origin[0]) * inv_res
@@ -215,66 +197,13 @@ def trace_rays(
         cx = jx - corner[0]
         cy = jy - corner[1]
         cz = jz - corner[2]
-        inside = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
-        if n_fresh > n_cap - 3 * CUBE_SIDE or not inside:
-            done = apply_fresh(
-                fresh,
-                n_fresh,
-                corner,
-                cube,
-                table_keys,
-                table_vals,
-                shift,
-                block_coords,
-                count,
-                logodds,
-                known,
-                block_scan,
-                updates,
-                lut,
-                bs,
-                lg,
-                delta,
-                l_min,
-                l_max,
-            )
-            if done < n_fresh:
-                return batch_start
-            n_fresh = 0
-            batch_start = n
-        if not inside:
+        if not (0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE):
             if total > len(outside):
                 outside = np.empty((total, 3), dtype=np.int64)
-            n_fresh, n_out = _split_ray(o, ex, ey, ez, corner, cube, fresh, outside)
-            done = apply_fresh(
-                fresh,
-                n_fresh,
-                corner,
-                cube,
-                table_keys,
-                table_vals,
-                shift,
-                block_coords,
-                count,
-                logodds,
-                known,
-                block_scan,
-                updates,
-                lut,
-                bs,
-                lg,
-                delta,
-                l_min,
-                l_max,
-            )
-            if done < n_fresh:
-                return n
-            n_fresh = 0
+            n_out = _split_ray(o, ex, ey, ez, corner, cube, outside)
             done = visit_cells(
                 outside[:n_out],
                 0,
-                corner,
-                cube,
                 table_keys,
                 table_vals,
                 shift,
@@ -296,7 +225,6 @@ def trace_rays(
             )
             if done < n_out:
                 return n
-            batch_start = n + 1
             continue
         sx = 1 if jx > ix0 else -1
         sy = 1 if jy > iy0 else -1
@@ -321,11 +249,7 @@ def trace_rays(
             tdz = 1.0 / abs(ez - oz)
             tmz = ((iz0 + 1 if sz > 0 else iz0) - oz) / (ez - oz)
         m = m0
-        seen = np.int64(cube[m >> 3])
-        if not seen & (1 << (m & 7)):
-            cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
-            fresh[n_fresh] = m
-            n_fresh += 1
+        _mark(cube, m)
         for _ in range(total - 1):
             if tmx < tmy:
                 if tmx < tmz:
@@ -344,37 +268,19 @@ def trace_rays(
                 nz -= 1
                 tmz = tmz + tdz if nz > 0 else inf
                 m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
-            byte = m >> 3
-            seen = np.int64(cube[byte])
-            bit = 1 << (m & 7)
-            if not seen & bit:
-                cube[byte] = np.uint8(seen | bit)
-                fresh[n_fresh] = m
-                n_fresh += 1
-    done = apply_fresh(
-        fresh,
-        n_fresh,
-        corner,
-        cube,
-        table_keys,
-        table_vals,
-        shift,
-        block_coords,
-        count,
-        logodds,
-        known,
-        block_scan,
-        updates,
-        lut,
-        bs,
-        lg,
-        delta,
-        l_min,
-        l_max,
-    )
-    if done < n_fresh:
-        return batch_start
+            _mark(cube, m)
     return len(ends)
+
+
+@njit(cache=True, inline="always")
+def _mark(cube: np.ndarray, m: int) -> None:
+    """Mark cube cell ``m`` (Morton) seen, and its chunk written (``reset_cube`` clears it)."""
+    byte = m >> 3
+    seen = np.int64(cube[byte])
+    bit = 1 << (m & 7)
+    if not seen & bit:
+        cube[byte] = np.uint8(seen | bit)
+        cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
 
 
 @njit(cache=True)
@@ -385,13 +291,11 @@ def _split_ray(
     ez: float,
     corner: np.ndarray,
     cube: np.ndarray,
-    fresh: np.ndarray,
     outside: np.ndarray,
-) -> tuple[int, int]:
+) -> int:
     """Walk a ray that ends outside the cube, as ``ray_cells`` does (end cell excluded): the
-    cells in the cube that it reaches first are marked there and listed in ``fresh`` (Morton
-    codes, returned count), the rest — once out, a segment from inside stays out — are listed
-    in ``outside`` (returned count) for ``visit_cells``."""
+    cells in the cube that it reaches first are marked there, the rest — once out, a segment
+    from inside stays out — are listed in ``outside`` (returned count) for ``visit_cells``."""
     inf = math.inf
     ox, oy, oz = o[0], o[1], o[2]
     ix = math.floor(ox)
@@ -422,7 +326,6 @@ def _split_ray(
     if nz > 0:
         tdz = 1.0 / abs(ez - oz)
         tmz = ((iz + 1 if sz > 0 else iz) - oz) / (ez - oz)
-    n_fresh = 0
     n_out = 0
     inside = True
     for s in range(total):
@@ -432,12 +335,7 @@ def _split_ray(
             cz = iz - corner[2]
             inside = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
         if inside:
-            m = morton(cx, cy, cz)
-            seen = np.int64(cube[m >> 3])
-            if not seen & (1 << (m & 7)):
-                cube[m >> 3] = np.uint8(seen | (1 << (m & 7)))
-                fresh[n_fresh] = m
-                n_fresh += 1
+            _mark(cube, morton(cx, cy, cz))
         else:
             outside[n_out, 0] = ix
             outside[n_out, 1] = iy
@@ -463,7 +361,7 @@ def _split_ray(
             iz += sz
             nz -= 1
             tmz = tmz + tdz if nz > 0 else inf
-    return n_fresh, n_out
+    return n_out
 
 
 @njit(cache=True)
