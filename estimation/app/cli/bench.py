@@ -97,6 +97,32 @@ def bench_decode(
     typer.echo(json.dumps(result) if json_out else format_decode_report(result))
 
 
+@bench_app.command("batch")
+@cli_errors
+def bench_batch(
+    dataset: Annotated[
+        Path | None,
+        typer.Option(help="A dataset folder (default: the mission simulated, in a temporary one)."),
+    ] = None,
+    mission: Annotated[
+        str, typer.Option(help="The built-in mission to simulate when no dataset is given.")
+    ] = "office_loop",
+    repeats: Annotated[int, typer.Option(min=1, help="Runs with figures and without.")] = 3,
+    json_out: JsonOption = False,
+) -> None:
+    """coopmap batch as a user runs it (a fresh process each time): wall time, CPU, peak RSS and
+    the steps, with figures and without, against the targets."""
+    import json
+
+    from estimation.app.bench.batch import format_batch_report, run_batch_benchmark
+
+    with make_console(stderr=True).status("timing coopmap batch…", spinner="dots") as status:
+        result = run_batch_benchmark(
+            dataset, mission=mission, repeats=repeats, progress=lambda t: status.update(t)
+        )
+    typer.echo(json.dumps(result) if json_out else format_batch_report(result))
+
+
 @bench_app.command("stations")
 @cli_errors
 def bench_stations(
