@@ -42,10 +42,12 @@ def run_batch_benchmark(
     *,
     mission: str = "office_loop",
     repeats: int = 3,
+    warm_up: bool = True,
     progress: Any = None,
 ) -> dict[str, Any]:
     """Time ``coopmap batch`` on ``dataset`` (or on ``mission`` simulated into a temporary
-    folder) ``repeats`` times with figures and as many without, alternating."""
+    folder) ``repeats`` times with figures and as many without, alternating; first one run
+    that is not counted, unless ``warm_up`` is False."""
     if repeats < 1:
         raise EstimationError(f"bench batch: repeats must be at least 1, got {repeats}")
     with tempfile.TemporaryDirectory(prefix="coopmap-bench-batch-") as tmp:
@@ -65,9 +67,10 @@ def run_batch_benchmark(
                 raise EstimationError(f"bench batch: {dataset}: no such dataset folder")
             source = str(dataset)
         out = root / "result"
-        if progress is not None:
-            progress("warming up (one run, not counted)…")
-        _timed_run(dataset, out, figures=True)
+        if warm_up:
+            if progress is not None:
+                progress("warming up (one run, not counted)…")
+            _timed_run(dataset, out, figures=True)
         runs = []
         for k in range(repeats):
             for figures in (True, False):
@@ -81,6 +84,7 @@ def run_batch_benchmark(
         "sweeps": runs[-1]["sweeps"],
         "telegrams": runs[-1]["telegrams"],
         "repeats": repeats,
+        "warm_up": warm_up,
         "runs": runs,
         "with_figures": _summary([r for r in runs if r["figures"]]),
         "without_figures": _summary([r for r in runs if not r["figures"]]),
@@ -150,10 +154,11 @@ def _summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def format_batch_report(result: dict[str, Any]) -> str:
     """The benchmark's figures as text."""
+    runs = f"{result['repeats']} run{'s' if result['repeats'] != 1 else ''}"
     lines = [
         f"bench batch: coopmap batch on {result['dataset']} ({result['telegrams']:,} telegrams, "
-        f"{result['sweeps']} sweeps), {result['repeats']} runs each way, alternating, after one "
-        "not counted"
+        f"{result['sweeps']} sweeps), {runs} each way, alternating"
+        + (", after one not counted" if result["warm_up"] else "")
     ]
     for key, label in (("with_figures", "with figures"), ("without_figures", "--no-figures")):
         s = result[key]

@@ -10,14 +10,19 @@ import pytest
 from estimation.app.bench.batch import format_batch_report, run_batch_benchmark
 from estimation.errors import EstimationError
 from tests.estimation.app.cli.clirun import assert_one_line_error, run
-from tests.estimation.app.missions import copy_of
+from tests.estimation.app.missions import ONE_STEP_MISSION
 
 
 @pytest.fixture(scope="module")
-def measured(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> dict:
-    dataset = copy_of(essex_simulated, tmp_path_factory, "bench_batch")
+def measured(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    from estimation.app.sim.simulate import run_simulation
+
+    root = tmp_path_factory.mktemp("bench_batch")
+    (root / "small.yaml").write_text(ONE_STEP_MISSION)
+    dataset = root / "small"
+    run_simulation(root / "small.yaml", dataset)
     before = sorted(p.relative_to(dataset) for p in dataset.rglob("*"))
-    result = run_batch_benchmark(dataset, repeats=1)
+    result = run_batch_benchmark(dataset, repeats=1, warm_up=False)
     # The dataset is only read: its results went to a temporary folder.
     assert sorted(p.relative_to(dataset) for p in dataset.rglob("*")) == before
     return result
@@ -49,6 +54,7 @@ def test_each_run_is_a_process_measured_from_the_outside(measured: dict) -> None
 def test_the_report_names_both_ways_and_the_target(measured: dict) -> None:
     text = format_batch_report(measured)
     assert text.startswith("bench batch: coopmap batch on ")
+    assert "1 run each way, alternating\n" in text  # no warm-up run was asked for
     assert "  with figures: wall " in text
     assert "  --no-figures: wall " in text
     assert "target ≤ 4 s and ≤ 400 MB per run" in text
