@@ -53,7 +53,7 @@ def test_batch_writes_the_result_directory(result: Path) -> None:
 
 
 def test_report_json_is_the_report_the_run_returned(dataset: Path, tmp_path: Path) -> None:
-    output = run_batch(dataset, tmp_path / "again")
+    output = run_batch(dataset, tmp_path / "again", figures=False)
     written = json.loads((tmp_path / "again" / "report.json").read_text())
     assert written == json.loads(json.dumps(output.report, default=float))
     timings = written["timings_s"]
@@ -127,7 +127,7 @@ def test_garbage_in_a_capture_is_counted_not_fatal(dataset: Path, tmp_path: Path
     start = len(data) // 2
     data[start : start + 3000] = rng.integers(0, 256, 3000, dtype=np.uint8).tobytes()
     capture.write_bytes(bytes(data))
-    output = run_batch(copy)
+    output = run_batch(copy, figures=False)
     assert output.report["robots"]["b"]["bytes_skipped"] > 0
     assert output.report["observations"] >= 3
 
@@ -229,7 +229,7 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
 ) -> None:
     from estimation.app.pipeline import run_isam
 
-    whole = run_isam(dataset, tmp_path / "isam")
+    whole = run_isam(dataset, tmp_path / "isam", figures=False)
     assert whole is not None
     batch_poses = {r: np.loadtxt(result / "poses" / f"{r}.tum", ndmin=2) for r in ("a", "b")}
     for robot, poses in whole.poses.items():
@@ -240,7 +240,7 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
             np.testing.assert_allclose(pose[:2], batch_poses[robot][k, 1:3], atol=1e-4)
     assert run_isam(dataset, tmp_path / "cut", stop_after=6) is None  # killed after 6 events
     assert (tmp_path / ".cut.checkpoint.npz").is_file()
-    resumed = run_isam(dataset, tmp_path / "cut", resume=True)
+    resumed = run_isam(dataset, tmp_path / "cut", resume=True, figures=False)
     assert resumed is not None
     assert resumed.report["isam2"]["events"] == whole.report["isam2"]["events"]
     for robot, poses in whole.poses.items():
@@ -281,8 +281,9 @@ def test_office_loop_closes_with_the_search_factors(tmp_path: Path) -> None:
     (``graph.search_factors: false``) — the issue's "at least 3× better" and the ATE figures."""
     data = tmp_path / "loop"
     run_simulation(REPO / "configs" / "missions" / "office_loop.yaml", data)
-    run_batch(data)
-    run_batch(data, data / "without", overrides={"graph": {"search_factors": False}})
+    run_batch(data, figures=False)
+    run_batch(data, data / "without", overrides={"graph": {"search_factors": False}},
+              figures=False)  # fmt: skip
     with_ = evaluate(data)
     without = evaluate(data, data / "without")
     searches = with_["global_localization"]

@@ -122,8 +122,8 @@ def test_a_replayed_mission_recorded_and_merged_gives_the_simulated_poses(
         assert np.ptp(shift) < 1e-6
         assert recorded[0] < 0.0  # recording began before the mission
 
-    run_batch(simulated)
-    run_batch(merged)
+    run_batch(simulated, figures=False)
+    run_batch(merged, figures=False)
     for name in "ab":
         t_sim, p_sim = read_tum(simulated / "result" / "poses" / f"{name}.tum")
         t_rec, p_rec = read_tum(merged / "result" / "poses" / f"{name}.tum")

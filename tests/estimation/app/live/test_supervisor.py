@@ -139,7 +139,7 @@ def test_a_live_mission_completes_and_batch_reproduces_it(reference: Path, tmp_p
         network = loop["network"]["robots"][robot]
         assert network["chunks"] > 0
         assert network["bytes"] > 100_000
-    batch = run_batch(reference, tmp_path / "batch")
+    batch = run_batch(reference, tmp_path / "batch", figures=False)
     live = _poses(reference / "result")
     for robot, poses in _poses(tmp_path / "batch").items():
         assert np.abs(poses[:, :2] - live[robot][:, :2]).max() < 1e-3
@@ -244,7 +244,7 @@ def test_a_three_robot_mission_in_a_generated_building(tmp_path: Path) -> None:
     report = json.loads((out / "result" / "report.json").read_text())
     assert report["mission_loop"]["stop_reason"] == "station budget (3) spent"
     assert set(report["mission_loop"]["clocks"]) == {"a", "b", "c"}
-    run_batch(out, tmp_path / "batch")
+    run_batch(out, tmp_path / "batch", figures=False)
     live_poses, batch_poses = _poses(out / "result"), _poses(tmp_path / "batch")
     assert set(batch_poses) == {"a", "b", "c"}
     for robot, poses in batch_poses.items():

@@ -65,7 +65,7 @@ def test_the_loop_records_a_dataset_that_batch_reproduces(
     for robot in "ab":
         assert (dataset / "robots" / robot / "lms.cap").stat().st_size > 100_000
         assert (dataset / "ground_truth" / f"{robot}.tum").is_file()
-    out = run_batch(dataset, dataset.parent / "batch")
+    out = run_batch(dataset, dataset.parent / "batch", figures=False)
     for robot in "ab":
         _, live = read_tum(dataset / "result" / "poses" / f"{robot}.tum")
         _, offline = read_tum(dataset.parent / "batch" / "poses" / f"{robot}.tum")
@@ -201,7 +201,7 @@ def test_a_mission_that_fails_under_way_keeps_its_recording(
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     events = [json.loads(line) for line in (out / "events.jsonl").read_text().splitlines()]
     assert sum(e["event"] == "dwell" for e in events) == 4
-    result = run_batch(out, tmp_path / "batch")
+    result = run_batch(out, tmp_path / "batch", figures=False)
     assert result.report["observations"] >= 2
     assert result.report["partial_mission"] == "Indeterminate linear system at b2"
     # Run again over it: a partial dataset is coopmap's and is replaced like any other.
