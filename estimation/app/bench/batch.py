@@ -101,17 +101,22 @@ def _timed_run(dataset: Path, out: Path, *, figures: bool) -> dict[str, Any]:
         began = time.perf_counter()
         process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors)
         deadline = began + RUN_TIMEOUT_S
-        while True:
-            pid, status, usage = os.wait4(process.pid, os.WNOHANG)
-            if pid:
-                wall = time.perf_counter() - began
-                break
-            if time.perf_counter() > deadline:
-                process.send_signal(signal.SIGKILL)
-                os.wait4(process.pid, 0)
-                process.returncode = -signal.SIGKILL
-                raise EstimationError(f"bench batch: a run took longer than {RUN_TIMEOUT_S:.0f} s")
-            time.sleep(_POLL_S)
+        try:
+            while True:
+                # wait4, not Popen.wait: it also gives the child's resource usage.
+                pid, status, usage = os.wait4(process.pid, os.WNOHANG)
+                if pid:
+                    wall = time.perf_counter() - began
+                    break
+                if time.perf_counter() > deadline:
+                    raise EstimationError(f"bench batch: a run took longer than "
+                                          f"{RUN_TIMEOUT_S:.0f} s")  # fmt: skip
+                time.sleep(_POLL_S)
+        except BaseException:  # the timeout, or Ctrl-C: no batch is left running
+            process.send_signal(signal.SIGKILL)
+            os.wait4(process.pid, 0)
+            process.returncode = -signal.SIGKILL
+            raise
         process.returncode = os.waitstatus_to_exitcode(status)
         if process.returncode != 0:
             errors.seek(0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -71,3 +72,43 @@ def test_a_missing_dataset_or_a_failing_batch_is_one_line(tmp_path: Path) -> Non
                                           r"error: .*empty")  # fmt: skip
     with pytest.raises(EstimationError, match="repeats must be at least 1"):
         run_batch_benchmark(empty, repeats=0)
+
+
+def _children() -> set[int]:
+    """This process's child processes (Linux)."""
+    found: set[int] = set()
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        found |= {int(pid) for pid in (task / "children").read_text().split()}
+    return found
+
+
+def test_a_run_past_its_time_is_killed_and_reaped(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import estimation.app.bench.batch as bench
+
+    before = _children()
+    monkeypatch.setattr(bench, "RUN_TIMEOUT_S", 0.05)
+    folder = tmp_path / "some"
+    folder.mkdir()
+    with pytest.raises(EstimationError, match=r"a run took longer than 0 s"):
+        run_batch_benchmark(folder, repeats=1, warm_up=False)
+    assert _children() == before
+
+
+def test_ctrl_c_while_a_run_is_timed_leaves_no_batch_running(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    import estimation.app.bench.batch as bench
+
+    before = _children()
+
+    def interrupted(_: float) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench.time, "sleep", interrupted)
+    folder = tmp_path / "some"
+    folder.mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        run_batch_benchmark(folder, repeats=1, warm_up=False)
+    assert _children() == before
