@@ -102,7 +102,7 @@ def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
 
 def write_results(output: BatchOutput, config: Config, *, figures: bool = True) -> None:
     """The result folder (docs/results.md), replacing an earlier result atomically; without
-    ``figures`` the folder has no ``figures/`` (drawing them is a third of ``batch``'s time)."""
+    ``figures`` the folder has no ``figures/`` (drawing them is a quarter of ``batch``'s time)."""
     with replace_directory(output.out_dir, "result") as work:
         for robot, poses in output.poses.items():
             if not poses:

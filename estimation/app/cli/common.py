@@ -42,7 +42,7 @@ FiguresOption = Annotated[
     bool,
     typer.Option(
         "--figures/--no-figures",
-        help="Draw the result's figures (figures/*.png); --no-figures saves a third of the time.",
+        help="Draw the result's figures (figures/*.png); --no-figures saves a quarter of the time.",
     ),
 ]
 
