@@ -33,7 +33,7 @@ def exported(
     tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path
 ) -> tuple[Path, Path, Messages]:
     dataset = copy_of(essex_simulated, tmp_path_factory, "ros")
-    run_batch(dataset)
+    run_batch(dataset, figures=False)
     bag = dataset.parent / "essex.mcap"
     export_result(dataset / "result", bag)
     return dataset, bag, read_bag(bag)

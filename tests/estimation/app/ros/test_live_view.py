@@ -178,7 +178,7 @@ def typestore() -> Any:
 @pytest.fixture(scope="module")
 def result(tmp_path_factory: pytest.TempPathFactory, essex_simulated: Path) -> Path:
     dataset = copy_of(essex_simulated, tmp_path_factory, "live")
-    run_batch(dataset)
+    run_batch(dataset, figures=False)
     return dataset / "result"
 
 
