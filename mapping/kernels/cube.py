@@ -19,6 +19,7 @@ from numba import njit
 from mapping.kernels.blocks import (
     EMPTY_KEY,
     find_or_add_block,
+    locate,
     pack_block,
     probe,
     split,
@@ -62,6 +63,67 @@ def morton(x: int, y: int, z: int) -> int:
     return (_dilate(x) << 2) | (_dilate(y) << 1) | _dilate(z)
 
 
+@njit(cache=True, inline="always")
+def _block_key(m: int, corner: np.ndarray, bs: int, lg: int) -> int:
+    """A number that names the block of cube cell ``m`` (Morton): with power-of-two blocks and a
+    block-aligned cube, the block's own Morton code (the cell's code without its in-block
+    bits); otherwise its packed coordinates."""
+    if lg >= 0:
+        return m >> (3 * lg)
+    return pack_block(
+        (_compact(m >> 2) + corner[0]) // bs,
+        (_compact(m >> 1) + corner[1]) // bs,
+        (_compact(m) + corner[2]) // bs,
+    )
+
+
+@njit(cache=True, inline="always")
+def _block_of(
+    m: int,
+    corner: np.ndarray,
+    table_keys: np.ndarray,
+    table_vals: np.ndarray,
+    shift: int,
+    block_coords: np.ndarray,
+    count: np.ndarray,
+    logodds: np.ndarray,
+    known: np.ndarray,
+    block_scan: np.ndarray,
+    bs: int,
+    lg: int,
+) -> int:
+    """The pool index of cube cell ``m``'s block, created if new; −1 when the pool is full."""
+    bx, _ = locate(_compact(m >> 2) + corner[0], bs, lg)
+    by, _ = locate(_compact(m >> 1) + corner[1], bs, lg)
+    bz, _ = locate(_compact(m) + corner[2], bs, lg)
+    blk = probe(table_keys, table_vals, shift, pack_block(bx, by, bz))
+    if blk < 0:
+        blk = find_or_add_block(table_keys, table_vals, shift, block_coords, count, logodds,
+                                known, block_scan, bx, by, bz)  # fmt: skip
+    return blk
+
+
+@njit(cache=True, inline="always")
+def _offset(m: int, corner: np.ndarray, lut: np.ndarray, bs: int, lg: int) -> int:
+    """Where cube cell ``m`` lies in its block: its in-block Morton bits when the blocks are
+    powers of two (their layout is Morton order), the layout table's offset otherwise."""
+    if lg >= 0:
+        return m & ((1 << (3 * lg)) - 1)
+    _, lx = split(_compact(m >> 2) + corner[0], bs)
+    _, ly = split(_compact(m >> 1) + corner[1], bs)
+    _, lz = split(_compact(m) + corner[2], bs)
+    return lut[0, lx] + lut[1, ly] + lut[2, lz]
+
+
+@njit(cache=True, inline="always")
+def _update(
+    logodds: np.ndarray, known: np.ndarray, blk: int, flat: int, delta: float, l_min: float,
+    l_max: float,
+) -> None:  # fmt: skip
+    logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
+    known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+
+
 @njit(cache=True)
 def apply_fresh(
     fresh: np.ndarray,
@@ -90,78 +152,20 @@ def apply_fresh(
     then cleared in the cube again, so that tracing their rays again updates them.
     """
     blk = -1
+    last = EMPTY_KEY
     stop = n_fresh
-    if lg >= 0:
-        # Power-of-two blocks and a block-aligned cube: a cell's Morton code is its block's
-        # Morton code (relative to the cube corner's block) followed by its in-block offset.
-        s3 = 3 * lg
-        low = (1 << s3) - 1
-        cbx = corner[0] >> lg
-        cby = corner[1] >> lg
-        cbz = corner[2] >> lg
-        last_hi = -1
-        for k in range(n_fresh):
-            m = fresh[k]
-            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
-            hi = m >> s3
-            if hi != last_hi:
-                bx = _compact(hi >> 2) + cbx
-                by = _compact(hi >> 1) + cby
-                bz = _compact(hi) + cbz
-                blk = probe(table_keys, table_vals, shift, pack_block(bx, by, bz))
-                if blk < 0:
-                    blk = find_or_add_block(
-                        table_keys,
-                        table_vals,
-                        shift,
-                        block_coords,
-                        count,
-                        logodds,
-                        known,
-                        block_scan,
-                        bx,
-                        by,
-                        bz,
-                    )
-                if blk < 0:
-                    stop = k
-                    break
-                last_hi = hi
-            flat = m & low
-            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
-            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
-    else:
-        last = EMPTY_KEY
-        for k in range(n_fresh):
-            m = fresh[k]
-            cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
-            bx, lx = split(_compact(m >> 2) + corner[0], bs)
-            by, ly = split(_compact(m >> 1) + corner[1], bs)
-            bz, lz = split(_compact(m) + corner[2], bs)
-            key = pack_block(bx, by, bz)
-            if key != last:
-                blk = probe(table_keys, table_vals, shift, key)
-                if blk < 0:
-                    blk = find_or_add_block(
-                        table_keys,
-                        table_vals,
-                        shift,
-                        block_coords,
-                        count,
-                        logodds,
-                        known,
-                        block_scan,
-                        bx,
-                        by,
-                        bz,
-                    )
-                if blk < 0:
-                    stop = k
-                    break
-                last = key
-            flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
-            logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
-            known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+    for k in range(n_fresh):
+        m = fresh[k]
+        cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
+        key = _block_key(m, corner, bs, lg)
+        if key != last:
+            blk = _block_of(m, corner, table_keys, table_vals, shift, block_coords, count,
+                            logodds, known, block_scan, bs, lg)  # fmt: skip
+            if blk < 0:
+                stop = k
+                break
+            last = key
+        _update(logodds, known, blk, _offset(m, corner, lut, bs, lg), delta, l_min, l_max)
     updates[0] += stop
     for k in range(stop, n_fresh):
         m = fresh[k]
@@ -202,10 +206,8 @@ def apply_marked(
     there once it has grown). The caller unmarks the cells it updated otherwise first."""
     words = cube[:CUBE_BYTES].view(np.uint64)
     chunk_words = 1 << (CUBE_CHUNK_BITS - 3)
-    s3 = 3 * lg
-    low = (1 << s3) - 1 if lg >= 0 else 0
     blk = -1
-    last = -1
+    last = EMPTY_KEY
     done = 0
     for c in range(start >> (CUBE_CHUNK_BITS + 3), CUBE_BYTES >> CUBE_CHUNK_BITS):
         if not cube[CUBE_BYTES + c]:
@@ -218,45 +220,16 @@ def apply_marked(
                 bit = word & (~word + np.uint64(1))
                 m = (w << 6) | _LOWEST_BIT[np.int64((bit * _DE_BRUIJN) >> np.uint64(58))]
                 word ^= bit
-                # The block: its Morton code (relative to the corner's) when the blocks are
-                # powers of two, its coordinates otherwise.
-                key = (
-                    m >> s3
-                    if lg >= 0
-                    else pack_block(
-                        (_compact(m >> 2) + corner[0]) // bs,
-                        (_compact(m >> 1) + corner[1]) // bs,
-                        (_compact(m) + corner[2]) // bs,
-                    )
-                )
+                key = _block_key(m, corner, bs, lg)
                 if key != last:
-                    if lg >= 0:
-                        bx = _compact(key >> 2) + (corner[0] >> lg)
-                        by = _compact(key >> 1) + (corner[1] >> lg)
-                        bz = _compact(key) + (corner[2] >> lg)
-                    else:
-                        bx, _ = split(_compact(m >> 2) + corner[0], bs)
-                        by, _ = split(_compact(m >> 1) + corner[1], bs)
-                        bz, _ = split(_compact(m) + corner[2], bs)
-                    blk = probe(table_keys, table_vals, shift, pack_block(bx, by, bz))
-                    if blk < 0:
-                        blk = find_or_add_block(
-                            table_keys, table_vals, shift, block_coords, count, logodds,
-                            known, block_scan, bx, by, bz,
-                        )  # fmt: skip
+                    blk = _block_of(m, corner, table_keys, table_vals, shift, block_coords,
+                                    count, logodds, known, block_scan, bs, lg)  # fmt: skip
                     if blk < 0:
                         updates[0] += done
                         return m
                     last = key
-                if lg >= 0:
-                    flat = m & low
-                else:
-                    _, lx = split(_compact(m >> 2) + corner[0], bs)
-                    _, ly = split(_compact(m >> 1) + corner[1], bs)
-                    _, lz = split(_compact(m) + corner[2], bs)
-                    flat = lut[0, lx] + lut[1, ly] + lut[2, lz]
-                logodds[blk, flat] = min(max(logodds[blk, flat] + delta, l_min), l_max)
-                known[blk, flat >> 3] |= np.uint8(1 << (flat & 7))
+                _update(logodds, known, blk, _offset(m, corner, lut, bs, lg), delta, l_min,
+                        l_max)  # fmt: skip
                 done += 1
     updates[0] += done
     return -1

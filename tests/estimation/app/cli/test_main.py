@@ -232,7 +232,7 @@ def test_batch_and_isam_pass_the_figures_choice_on(
     asked: list[bool] = []
 
     class StopError(Exception):
-        pass
+        """The stand-in's way to end the command once it has seen the choice."""
 
     def runner(*_: object, figures: bool, **__: object) -> None:
         asked.append(figures)
