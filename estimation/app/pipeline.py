@@ -382,8 +382,10 @@ def _search_stages(
         }
         result = optimize_batch(factors, initial, robust=config.graph.robust)
     work = [
-        {"station": s.label, "rays": w.rays, "fusions": w.own_builds,
-         "seconds": round(w.seconds, 6)}
+        {"station": s.label, "rays": w.rays, "older_rays": w.older_rays,
+         "fusions": w.own_builds, "seconds": round(w.seconds, 6),
+         "own_seconds": round(w.own_seconds, 6), "older_seconds": round(w.older_seconds, 6),
+         "search_seconds": round(w.search_seconds, 6)}
         for s in mission_stations
         if (w := maps.work.get(s.key)) is not None
     ]  # fmt: skip

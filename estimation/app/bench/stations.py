@@ -22,7 +22,13 @@ import yaml
 
 from estimation.app.config import Config
 
-__all__ = ["bench_mission", "format_stations_report", "growth_exponent", "run_stations_benchmark"]
+__all__ = [
+    "bench_mission",
+    "format_stations_report",
+    "growth_exponent",
+    "run_stations_benchmark",
+    "work_parts",
+]
 
 ROBOTS = ("a", "b", "c", "d")
 
@@ -140,7 +146,44 @@ def run_stations_benchmark(
         "timings_s": output.report["timings_s"],
         "rays_exponent": growth_exponent(rays),
         "seconds_exponent": growth_exponent(seconds),
+        **work_parts(work, output.report["global_localization"]["searches"]),
         "per_station": work,
+    }
+
+
+def _exponent_or_none(work: np.ndarray) -> float | None:
+    try:
+        return growth_exponent(work)
+    except ValueError:
+        return None
+
+
+def work_parts(work: list[dict[str, Any]], searches: list[dict[str, Any]]) -> dict[str, Any]:
+    """Where per-station time goes (``work``: the report's ``station_work``; ``searches``: its
+    search records): the growth exponent of each part (own map, older stations' map,
+    searches; None when too few stations have that work), and the median seconds of the
+    stations whose loop closure became a factor and of the others, with the share of the
+    former in each eighth of the mission."""
+    closed = {r["station"] for r in searches if r.get("kind") == "loop" and r.get("used")}
+    seconds = np.array([w["seconds"] for w in work], dtype=np.float64)
+    with_closure = np.array([w["station"] in closed for w in work], dtype=bool)
+    parts = {
+        part: _exponent_or_none(np.array([w.get(f"{part}_seconds", 0.0) for w in work]))
+        for part in ("own", "older", "search")
+    }
+
+    def median(mask: np.ndarray) -> float | None:
+        return float(np.median(seconds[mask])) if mask.any() else None
+
+    return {
+        "part_exponents": parts,
+        "closure_median_s": median(with_closure),
+        "no_closure_median_s": median(~with_closure),
+        "closure_share_by_eighth": [
+            round(float(with_closure[g].mean()), 3)
+            for g in np.array_split(np.arange(len(work)), 8)
+            if len(g)
+        ],
     }
 
 
@@ -162,5 +205,19 @@ def format_stations_report(result: dict[str, Any], every: int = 10) -> str:
     lines.append(
         f"  growth exponent of per-station work: rays {result['rays_exponent']:.3f}, "
         f"seconds {result['seconds_exponent']:.3f} (target <= 0.2)"
+    )
+    names = {"own": "own map", "older": "older stations' map", "search": "searches"}
+    lines.append("  of its parts, in seconds: " + ", ".join(
+        f"{names[part]} {'-' if alpha is None else f'{round(alpha, 3) + 0.0:.3f}'}"
+        for part, alpha in result["part_exponents"].items()
+    ))  # fmt: skip
+
+    def seconds(value: float | None) -> str:
+        return "-" if value is None else f"{value:.3f} s"
+
+    lines.append(
+        f"  median per station: with a loop closure taken {seconds(result['closure_median_s'])}"
+        f", without {seconds(result['no_closure_median_s'])}; share with one, by eighth of "
+        "the mission: " + " ".join(f"{share:.2f}" for share in result["closure_share_by_eighth"])
     )
     return "\n".join(lines)

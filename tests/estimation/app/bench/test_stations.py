@@ -45,3 +45,36 @@ def test_the_route_visits_every_room_nearest_first_and_comes_back_the_same_way()
     route = _route(Site(), np.array([0.0, 0.0, 0.0]), np.random.default_rng(0))
     there = [[1.0, 0.0], [4.0, 0.0], [9.0, 0.0], [2.0, 5.0]]  # nearest neighbour from (0, 0)
     assert route == there + there[-2::-1]
+
+
+def test_work_parts_split_the_time_and_the_stations_with_a_loop_closure() -> None:
+    """Stations whose loop closure became a factor cost twice the others and come late: the
+    split shows it, and each part's exponent is its own."""
+    from estimation.app.bench.stations import format_stations_report, work_parts
+
+    n = 160
+    work = [
+        {"station": f"a{k}", "rays": 1000, "fusions": 1, "seconds": 1.0 + (k >= 100),
+         "own_seconds": 0.5, "older_seconds": 0.0 if k < 150 else 0.5, "search_seconds": 0.5}
+        for k in range(n)
+    ]  # fmt: skip
+    searches = [{"station": f"a{k}", "kind": "loop", "used": k >= 100} for k in range(90, n)] + [
+        {"station": "a5", "kind": "link", "used": True}
+    ]
+    parts = work_parts(work, searches)
+    assert parts["closure_median_s"] == pytest.approx(2.0)
+    assert parts["no_closure_median_s"] == pytest.approx(1.0)
+    assert parts["closure_share_by_eighth"] == [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+    assert parts["part_exponents"]["own"] == pytest.approx(0.0, abs=1e-9)
+    assert parts["part_exponents"]["search"] == pytest.approx(0.0, abs=1e-9)
+    assert parts["part_exponents"]["older"] is None  # 10 stations with that work
+    result = {
+        "seed": 2, "rooms": 32, "robots": 4, "stations": n, "steps": 1, "sweeps": 1,
+        "mission_s": 60.0, "simulate_s": 1.0, "batch_s": 2.0, "batch_cpu_s": 3.0,
+        "timings_s": {"search": 1.0}, "rays_exponent": 0.0, "seconds_exponent": 0.3,
+        "per_station": work, **parts,
+    }  # fmt: skip
+    text = format_stations_report(result)
+    assert "own map 0.000, older stations' map -, searches 0.000" in text
+    assert "with a loop closure taken 2.000 s, without 1.000 s" in text
+    assert text.endswith("0.00 0.00 0.00 0.00 0.00 1.00 1.00 1.00")
