@@ -11,9 +11,10 @@ SYSLIBS := libusb-1.0.so.0:libusb-1.0-0 libgomp.so.1:libgomp1
 demo: $(STAMP)
 	$(BIN)/coopmap demo
 
-# The README's test command: everything CI runs (lint, types, the test suite).
+# The README's test command: everything CI runs (lint, types, the test suite, one pytest
+# worker per core, at most 4).
 test: lint typecheck
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --numprocesses auto --maxprocesses 4
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
