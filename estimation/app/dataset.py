@@ -335,8 +335,7 @@ class LmsDecoder:
 
     def _add(self, scans: list[Scan]) -> int:
         self.scans += scans
-        for scan in scans:
-            self.clock.add(scan)
+        self.clock.extend(scans)
         return len(scans)
 
     @property

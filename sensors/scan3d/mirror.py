@@ -23,6 +23,7 @@ the edge-on moment.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,8 +96,7 @@ def scan_times(scans: list[Scan]) -> np.ndarray:
     clock = ScanClock()
     if any(s.stamp_s is None for s in scans):
         raise SensorError("every scan needs a host stamp to be placed in time")
-    for scan in scans:
-        clock.add(scan)
+    clock.extend(scans)
     return clock.times()
 
 
@@ -112,23 +112,40 @@ class ScanClock:
         self._anchor = math.inf
 
     def add(self, scan: Scan) -> None:
-        if scan.stamp_s is None:
+        self.extend((scan,))
+
+    def extend(self, scans: Sequence[Scan]) -> None:
+        """Add ``scans`` in order, over arrays (a capture has tens of thousands). Each scan's
+        turn counts on from the one before: the step of the counter mod 256, plus the whole
+        wraps of 256 turns that the stamps' gap holds. SensorError at the first scan without a
+        host stamp, the scans before it added."""
+        stamps = [scan.stamp_s for scan in scans]
+        if None in stamps:
+            self.extend(scans[: stamps.index(None)])
             raise SensorError("every scan needs a host stamp to be placed in time")
-        stamp = float(scan.stamp_s)
-        index = scan.scan_index
-        if index is None:
-            self.indexed = False
-        elif self.indexed:
-            if self.turns:
-                step = int((index - self._index) % 256)
-                expected = (stamp - self.stamps[-1]) / TURN_S
-                wraps = max(0, round((expected - step) / 256))
-                self.turns.append(self.turns[-1] + step + 256 * wraps)
-            else:
-                self.turns.append(0)
-            self._index = int(index)
-            self._anchor = min(self._anchor, stamp - self.turns[-1] * TURN_S)
-        self.stamps.append(stamp)
+        stamped = [float(stamp) for stamp in stamps]  # type: ignore[arg-type]
+        if self.indexed:
+            indices = [scan.scan_index for scan in scans]
+            counted = indices.index(None) if None in indices else len(indices)
+            if counted:
+                self._count(np.array(indices[:counted], np.int64), np.array(stamped[:counted]))
+            self.indexed = counted == len(indices)
+        self.stamps += stamped
+
+    def _count(self, index: np.ndarray, stamp: np.ndarray) -> None:
+        """Turns of scans with these counter values and stamps, after those so far."""
+        before = 1 if self.turns else 0
+        if before:
+            index = np.concatenate([[self._index], index])
+            stamp = np.concatenate([[self.stamps[-1]], stamp])
+        step = np.diff(index) % 256
+        expected = np.diff(stamp) / TURN_S
+        wraps = np.maximum(0.0, np.round((expected - step) / 256)).astype(np.int64)
+        first = self.turns[-1] if before else 0
+        turns = first + np.concatenate([[0], np.cumsum(step + 256 * wraps)])
+        self.turns += turns[before:].tolist()
+        self._index = int(index[-1])
+        self._anchor = min(self._anchor, float(np.min(stamp - turns * TURN_S)))
 
     def times(self) -> np.ndarray:
         if not self.indexed or not self.stamps:

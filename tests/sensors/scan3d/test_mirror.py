@@ -210,6 +210,40 @@ def test_scan_clock_fed_scan_by_scan_gives_scan_times_of_the_scans_so_far() -> N
     assert np.min(stamps - times) == pytest.approx(0.0, abs=1e-12)
 
 
+def test_scan_clock_extended_in_chunks_counts_the_same_turns() -> None:
+    """A capture's scans are added in chunks of any size (a whole capture at once, or as
+    received): the turns, wraps included, and the anchor are those of the scans' true turns."""
+    rng = np.random.default_rng(5)
+    steps = rng.choice([6, 6, 12], 400)
+    steps[[10, 11, 250, 399]] = [256, 262, 1030, 512]
+    turns = 3 + np.concatenate([[0], np.cumsum(steps)])
+    stamps = 7.0 + turns * TURN_S + rng.uniform(0.0, 0.05, len(turns))
+    scans = counter_scans(turns, stamps)
+    relative = (turns - turns[0]) * TURN_S
+    expected = relative + np.min(stamps - relative)
+    for sizes in ([len(scans)], [1, 10, 1, 200], [7] * 60):
+        clock, start = ScanClock(), 0
+        for size in [*sizes, len(scans)]:
+            clock.extend(scans[start : start + size])
+            start = min(len(scans), start + size)
+        np.testing.assert_allclose(clock.times(), expected, rtol=0, atol=1e-9)
+        assert clock.turns == (turns - turns[0]).tolist()
+    # A scan without an index inside a chunk: the stream falls back to the stamps.
+    mixed = list(scans)
+    mixed[30] = counter_scans(turns[30:31], stamps[30:31], indexed=False)[0]
+    clock = ScanClock()
+    clock.extend(mixed[:20])
+    clock.extend(mixed[20:])
+    np.testing.assert_array_equal(clock.times(), stamps)
+    # A scan without a stamp inside a chunk: the ones before it are added, then the error.
+    clock = ScanClock()
+    with pytest.raises(SensorError, match="every scan needs a host stamp"):
+        clock.extend([*scans[:5], replace(scans[5], stamp_s=None), *scans[6:]])
+    first = relative[:5] + np.min(stamps[:5] - relative[:5])
+    np.testing.assert_allclose(clock.times(), first, rtol=0, atol=1e-9)
+    assert clock.turns == (turns[:5] - turns[0]).tolist()
+
+
 def test_scan_clock_without_indices_gives_the_stamps() -> None:
     turns = np.arange(0, 60, 6)
     stamps = 1.0 + turns * TURN_S + np.linspace(0.0, 0.02, len(turns))
