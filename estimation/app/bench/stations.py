@@ -33,12 +33,17 @@ __all__ = [
 ROBOTS = ("a", "b", "c", "d")
 
 
-def growth_exponent(work: np.ndarray, bins: int = 8) -> float:
-    """α of work ∝ n^α over stations n = 1…N (``work`` in mission order): the least-squares
-    slope of log(median work) on log(median n) over ``bins`` equal-count groups of stations
-    (medians damp the searches' spread); stations without work are left out."""
+def growth_exponent(work: np.ndarray, bins: int = 8, index: np.ndarray | None = None) -> float:
+    """α of work ∝ n^α over stations n = 1…N (``work`` in mission order; ``index``: the
+    stations' places n when ``work`` is some of them): the least-squares slope of log(median
+    work) on log(median n) over ``bins`` equal-count groups of stations (medians damp the
+    searches' spread); stations without work are left out."""
     work = np.asarray(work, dtype=np.float64)
-    index = np.arange(1, len(work) + 1, dtype=np.float64)
+    index = (
+        np.arange(1, len(work) + 1, dtype=np.float64)
+        if index is None
+        else np.asarray(index, dtype=np.float64)
+    )
     keep = work > 0
     index, work = index[keep], work[keep]
     if len(work) < 2 * bins:
@@ -151,9 +156,9 @@ def run_stations_benchmark(
     }
 
 
-def _exponent_or_none(work: np.ndarray) -> float | None:
+def _exponent_or_none(work: np.ndarray, index: np.ndarray | None = None) -> float | None:
     try:
-        return growth_exponent(work)
+        return growth_exponent(work, index=index)
     except ValueError:
         return None
 
@@ -162,8 +167,10 @@ def work_parts(work: list[dict[str, Any]], searches: list[dict[str, Any]]) -> di
     """Where per-station time goes (``work``: the report's ``station_work``; ``searches``: its
     search records): the growth exponent of each part (own map, older stations' map,
     searches; None when too few stations have that work), and the median seconds of the
-    stations whose loop closure became a factor and of the others, with the share of the
-    former in each eighth of the mission."""
+    stations whose loop closure became a factor and of the others, the growth exponent of
+    each kind alone, and the share of the former in each eighth of the mission: an
+    out-and-back route closes loops only on its way back, so the exponent over all stations
+    also measures that mix."""
     closed = {r["station"] for r in searches if r.get("kind") == "loop" and r.get("used")}
     seconds = np.array([w["seconds"] for w in work], dtype=np.float64)
     with_closure = np.array([w["station"] in closed for w in work], dtype=bool)
@@ -175,10 +182,13 @@ def work_parts(work: list[dict[str, Any]], searches: list[dict[str, Any]]) -> di
     def median(mask: np.ndarray) -> float | None:
         return float(np.median(seconds[mask])) if mask.any() else None
 
+    index = np.arange(1, len(work) + 1, dtype=np.float64)
     return {
         "part_exponents": parts,
         "closure_median_s": median(with_closure),
         "no_closure_median_s": median(~with_closure),
+        "closure_exponent": _exponent_or_none(seconds[with_closure], index[with_closure]),
+        "no_closure_exponent": _exponent_or_none(seconds[~with_closure], index[~with_closure]),
         "closure_share_by_eighth": [
             round(float(with_closure[g].mean()), 3)
             for g in np.array_split(np.arange(len(work)), 8)
@@ -207,17 +217,25 @@ def format_stations_report(result: dict[str, Any], every: int = 10) -> str:
         f"seconds {result['seconds_exponent']:.3f} (target <= 0.2)"
     )
     names = {"own": "own map", "older": "older stations' map", "search": "searches"}
-    lines.append("  of its parts, in seconds: " + ", ".join(
-        f"{names[part]} {'-' if alpha is None else f'{round(alpha, 3) + 0.0:.3f}'}"
-        for part, alpha in result["part_exponents"].items()
-    ))  # fmt: skip
+
+    def alpha(value: float | None) -> str:
+        return "-" if value is None else f"{round(value, 3) + 0.0:.3f}"
 
     def seconds(value: float | None) -> str:
         return "-" if value is None else f"{value:.3f} s"
 
+    lines.append("  of its parts, in seconds: " + ", ".join(
+        f"{names[part]} {alpha(value)}" for part, value in result["part_exponents"].items()
+    ))  # fmt: skip
+
     lines.append(
-        f"  median per station: with a loop closure taken {seconds(result['closure_median_s'])}"
-        f", without {seconds(result['no_closure_median_s'])}; share with one, by eighth of "
-        "the mission: " + " ".join(f"{share:.2f}" for share in result["closure_share_by_eighth"])
+        f"  per station, with a loop closure taken: median {seconds(result['closure_median_s'])}"
+        f", exponent {alpha(result['closure_exponent'])}; without: median "
+        f"{seconds(result['no_closure_median_s'])}, exponent "
+        f"{alpha(result['no_closure_exponent'])}"
+    )
+    lines.append(
+        "  share of stations with a loop closure taken, by eighth of the mission: "
+        + " ".join(f"{share:.2f}" for share in result["closure_share_by_eighth"])
     )
     return "\n".join(lines)

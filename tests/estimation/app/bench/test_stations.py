@@ -68,6 +68,8 @@ def test_work_parts_split_the_time_and_the_stations_with_a_loop_closure() -> Non
     assert parts["part_exponents"]["own"] == pytest.approx(0.0, abs=1e-9)
     assert parts["part_exponents"]["search"] == pytest.approx(0.0, abs=1e-9)
     assert parts["part_exponents"]["older"] is None  # 10 stations with that work
+    assert parts["closure_exponent"] == pytest.approx(0.0, abs=1e-9)  # each kind flat
+    assert parts["no_closure_exponent"] == pytest.approx(0.0, abs=1e-9)
     result = {
         "seed": 2, "rooms": 32, "robots": 4, "stations": n, "steps": 1, "sweeps": 1,
         "mission_s": 60.0, "simulate_s": 1.0, "batch_s": 2.0, "batch_cpu_s": 3.0,
@@ -76,5 +78,6 @@ def test_work_parts_split_the_time_and_the_stations_with_a_loop_closure() -> Non
     }  # fmt: skip
     text = format_stations_report(result)
     assert "own map 0.000, older stations' map -, searches 0.000" in text
-    assert "with a loop closure taken 2.000 s, without 1.000 s" in text
+    assert "with a loop closure taken: median 2.000 s, exponent 0.000; without: median " in text
     assert text.endswith("0.00 0.00 0.00 0.00 0.00 1.00 1.00 1.00")
+    assert growth_exponent(np.array([w["seconds"] for w in work])) > 0.2  # the mix grows
