@@ -138,6 +138,7 @@ def run_stations_benchmark(
     rays = np.array([w["rays"] for w in work], dtype=np.float64)
     seconds = np.array([w["seconds"] for w in work], dtype=np.float64)
     return {
+        "benchmark": "stations",
         "seed": seed,
         "rooms": rooms,
         "robots": len(ROBOTS),
