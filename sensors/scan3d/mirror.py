@@ -124,6 +124,8 @@ class ScanClock:
             self.extend(scans[: stamps.index(None)])
             raise SensorError("every scan needs a host stamp to be placed in time")
         stamped = [float(stamp) for stamp in stamps]  # type: ignore[arg-type]
+        if not all(math.isfinite(stamp) for stamp in stamped):
+            raise SensorError("a scan's host stamp is not a finite time")
         if self.indexed:
             indices = [scan.scan_index for scan in scans]
             counted = indices.index(None) if None in indices else len(indices)

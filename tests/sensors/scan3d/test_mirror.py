@@ -242,6 +242,10 @@ def test_scan_clock_extended_in_chunks_counts_the_same_turns() -> None:
     first = relative[:5] + np.min(stamps[:5] - relative[:5])
     np.testing.assert_allclose(clock.times(), first, rtol=0, atol=1e-9)
     assert clock.turns == (turns[:5] - turns[0]).tolist()
+    for bad in (math.nan, math.inf):
+        with pytest.raises(SensorError, match="not a finite time"):
+            clock.extend([replace(scans[5], stamp_s=bad)])
+    assert clock.turns == (turns[:5] - turns[0]).tolist()  # nothing added
 
 
 def test_scan_clock_without_indices_gives_the_stamps() -> None:
