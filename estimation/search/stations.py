@@ -86,12 +86,7 @@ _NEIGHBOURHOOD_M = 12.0
 #: recent neighbours are already tied by mutual observations, and corridors repeat along their
 #: axis, so matching them adds false peaks rather than information.
 _MIN_AGE = 4
-#: A loop closure matches against at most this many older stations, the nearest: about one
-#: pass of a leapfrogging pair through the neighbourhood. The map it searches then stays the
-#: size of a neighbourhood however often the mission came by, and so does the closure's work
-#: (``coopmap bench stations``: on the way back through 32 rooms 30–57 older stations lay
-#: within 12 m, 1.45 M rays to fuse for one closure).
-_OLDER_MAX = 16
+#: A dominant peak becomes a factor only if it lies this close to the predicted pose.
 #: A loop-closure search covers ±``_LOOP_SIGMAS`` standard deviations of the predicted
 #: relative pose (from the graph's joint marginals), within these bounds (window side, m; yaw
 #: reach, rad); its dominant peak becomes a factor when it passes the χ² gate against the
@@ -544,16 +539,12 @@ def _anchor(
 
 
 def _older_near(positions: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The indices, in mission order, of the stations old enough for station ``n``'s loop
-    closure and within ``_NEIGHBOURHOOD_M`` of it, at most the ``_OLDER_MAX`` nearest
-    (``positions``: every station's, in mission order), and the distances of all the old
-    enough ones."""
+    """The indices of the stations old enough for station ``n``'s loop closure and within
+    ``_NEIGHBOURHOOD_M`` of it (``positions``: every station's, in mission order), and the
+    distances of all the old enough ones."""
     candidates = positions[: max(0, n - _MIN_AGE + 1)]
     distance = np.sqrt(((candidates - positions[n]) ** 2).sum(axis=1))
-    near = np.flatnonzero(distance < _NEIGHBOURHOOD_M)
-    if len(near) > _OLDER_MAX:
-        near = np.sort(near[np.argsort(distance[near], kind="stable")[:_OLDER_MAX]])
-    return near, distance
+    return np.flatnonzero(distance < _NEIGHBOURHOOD_M), distance
 
 
 def searched_with(stations: list[Station], estimate: dict[int, np.ndarray], key: int,

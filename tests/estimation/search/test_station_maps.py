@@ -484,29 +484,6 @@ def test_a_loop_closure_is_anchored_on_the_nearest_tied_station(mission) -> None
     assert stations_module._anchor(np.array([0]), distance, stations, ties) == 0  # none tied
 
 
-def test_a_loop_closure_matches_at_most_the_nearest_old_enough_stations() -> None:
-    """However often the mission came by, a closure's map holds at most ``_OLDER_MAX`` older
-    stations: the nearest of those old enough and within the neighbourhood, in mission order;
-    under the limit, every one of them."""
-    rng = np.random.default_rng(3)
-    limit, age = stations_module._OLDER_MAX, stations_module._MIN_AGE
-    positions = rng.uniform(-6.0, 6.0, (3 * limit, 2))
-    positions[::5] += 20.0  # beyond the neighbourhood
-    n = len(positions) - 2
-    near, distance = stations_module._older_near(positions, n)
-    assert len(distance) == n - age + 1  # the newest old enough is n - age
-    within = np.flatnonzero(distance < stations_module._NEIGHBOURHOOD_M)
-    assert len(within) > limit
-    assert len(near) == limit
-    assert np.all(np.diff(near) > 0)
-    assert set(near) <= set(within)
-    assert distance[near].max() == pytest.approx(np.sort(distance[within])[limit - 1])
-    few, distance = stations_module._older_near(positions, limit // 2)
-    assert len(few) < limit
-    assert few.tolist() == np.flatnonzero(distance < stations_module._NEIGHBOURHOOD_M).tolist()
-    assert stations_module._older_near(positions, age - 1)[0].tolist() == []
-
-
 def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_against_its_anchor() -> (
     None
 ):
