@@ -94,9 +94,7 @@ def scan_times(scans: list[Scan]) -> np.ndarray:
     host receive stamps are used as they are.
     """
     clock = ScanClock()
-    if any(s.stamp_s is None for s in scans):
-        raise SensorError("every scan needs a host stamp to be placed in time")
-    clock.extend(scans)
+    clock.extend(scans)  # SensorError on a scan without a (finite) host stamp
     return clock.times()
 
 
