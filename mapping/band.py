@@ -66,6 +66,23 @@ class Band:
         gx, gy = np.meshgrid(xs, ys)
         return gx, gy
 
+    def known_centers(self) -> np.ndarray:
+        """(n, 2) x, y of the known cells' centres."""
+        gx, gy = self.cell_centers()
+        return np.column_stack([gx[self.known], gy[self.known]])
+
+    def covers(self, xy: np.ndarray) -> np.ndarray:
+        """(n,) bool: which of the (n, 2) points fall on a known cell (outside the grid: no)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        ij = np.floor((xy - self.lower_xy) / self.resolution_m)
+        ij[~np.isfinite(ij)] = -1.0
+        rows, cols = self.shape
+        inside = (ij >= 0).all(axis=1) & (ij[:, 0] < cols) & (ij[:, 1] < rows)
+        covered = np.zeros(len(xy), dtype=bool)
+        i, j = ij[inside].astype(np.int64).T
+        covered[inside] = self.known[j, i]
+        return covered
+
 
 def band_layers(
     origin_z_m: float, resolution_m: float, z_min_m: float, z_max_m: float

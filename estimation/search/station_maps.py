@@ -62,6 +62,7 @@ __all__ = [
     "mutual_ties",
     "placed_against",
     "pose_sigmas",
+    "seen_alike",
     "side_by_side",
     "tied_views",
 ]
@@ -74,6 +75,9 @@ MIN_KNOWN_CELLS = 50
 #: Grids of older stations kept (one per anchor, the most recently used): consecutive stations
 #: mostly share their anchor; a long mission would otherwise hold one grid per station.
 _OLDER_GRIDS = 4
+#: A loop closure matches against at most this many older stations: the anchor and those whose
+#: ceiling bands cover most of the new station's (``seen_alike``; design §7).
+OLDER_MOST = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -541,3 +545,35 @@ def placed_against(older: list[Station], covariances: Sequence[np.ndarray],
         if m <= limit_m and r <= limit_rad:
             kept.append(station)
     return kept
+
+
+def seen_alike(
+    station: Station,
+    anchor: Station,
+    older: list[Station],
+    estimate: dict[int, np.ndarray],
+    ties: dict[int, set[int]],
+    maps: StationMaps,
+    most: int = OLDER_MOST,
+) -> list[Station]:
+    """At most ``most`` of the ``older`` stations (in order) for ``station``'s loop closure: the
+    anchor, and those whose ceiling bands, placed by the estimate, hold most of the known cells
+    of the station's band. What a station sees lies down corridors and across rooms, not at the
+    nearest stations (generated building 106; design §7), so the map keeps the stations that saw
+    the same place, and its work stays flat however often the mission came by."""
+    if len(older) <= most:
+        return older
+    local = maps.band(station, estimate, ties)
+    if local is None:
+        return older
+    seen = se2.transform_points(estimate[station.key], local.known_centers())  # the map's frame
+
+    def held(other: Station) -> int:
+        band = maps.band(other, estimate, ties)
+        if band is None:
+            return -1
+        return int(band.covers(se2.transform_points(se2.inverse(estimate[other.key]), seen)).sum())
+
+    ranked = sorted(older, key=lambda s: (s.key != anchor.key, -held(s)))
+    chosen = {s.key for s in ranked[:most]}
+    return [s for s in older if s.key in chosen]

@@ -62,6 +62,7 @@ from estimation.search.station_maps import (
     mutual_ties,
     placed_against,
     pose_sigmas,
+    seen_alike,
     side_by_side,
 )
 from mapping.band import Band
@@ -424,6 +425,7 @@ def loop_closures(
         # The new station's and the older ones' poses against the anchor: one joint marginal.
         uncertainty, *placed = relative.around(anchor.key, [station.key, *(s.key for s in older)])
         older = placed_against(older, placed, uncertainty)
+        older = seen_alike(station, anchor, older, estimate, ties, maps)
         sigma_m, sigma_rad = pose_sigmas(uncertainty)
         local = maps.band(station, estimate, ties)
         global_ = maps.older_band(station, anchor, older, estimate, ties)

@@ -21,6 +21,7 @@ __all__ = [
     "log",
     "matrix",
     "propagate_compose",
+    "transform_points",
     "wrap_angle",
 ]
 
@@ -86,6 +87,14 @@ def between(T_w_a: np.ndarray, T_w_b: np.ndarray) -> np.ndarray:
     c, s = np.cos(t1), np.sin(t1)
     dx, dy = x2 - x1, y2 - y1
     return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(t2 - t1)], axis=-1)
+
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points from frame b into frame a, for one pose ``T_a_b``."""
+    x, y, t = (float(v) for v in np.asarray(T_a_b, dtype=float).reshape(3))
+    c, s = math.cos(t), math.sin(t)
+    points_b = np.asarray(points_b, dtype=float).reshape(-1, 2)
+    return points_b @ np.array([[c, s], [-s, c]]) + np.array([x, y])
 
 
 def matrix(pose: np.ndarray) -> np.ndarray:
