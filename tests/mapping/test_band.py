@@ -133,6 +133,24 @@ def test_a_column_seen_free_in_few_layers_is_unknown_with_free_min_observed() ->
             extract_band(grid, 0.45, 1.05, free_min_observed=bad)
 
 
+def test_a_band_tells_which_points_fall_on_its_known_cells() -> None:
+    """Cells of 0.5 m from (1, 2): the point's cell must be known; points off the grid, NaN
+    and infinite ones fall on none."""
+    known = np.zeros((3, 4), dtype=bool)  # rows y, columns x
+    known[1, 2] = known[0, 0] = True
+    band = Band(np.zeros((3, 4)), known, np.array([1.0, 2.0]), 0.5)
+    points = np.array([
+        [2.2, 2.7],  # row 1, column 2: known
+        [1.0, 2.0],  # the corner of cell (0, 0): known
+        [1.6, 2.2],  # row 0, column 1: unknown
+        [0.99, 2.2], [3.0, 2.2], [1.2, 3.5], [1.2, 1.9],  # just off each side
+        [np.nan, 2.2], [np.inf, 2.2], [2.2, -np.inf],
+    ])  # fmt: skip
+    assert band.covers(points).tolist() == [True, True] + [False] * 8
+    assert band.covers(np.zeros((0, 2))).shape == (0,)
+    np.testing.assert_allclose(band.known_centers(), [[1.25, 2.25], [2.25, 2.75]])
+
+
 def test_errors_name_the_problem() -> None:
     grid = synthetic_room()
     with pytest.raises(MapError, match=r"holds no observed cell"):

@@ -32,3 +32,17 @@ def test_between_keeps_a_small_turn_exactly() -> None:
     assert abs(se2.between(np.zeros(3), np.array([0.0, 0.0, 3 * math.pi]))[2]) == pytest.approx(
         math.pi
     )
+
+
+def test_transform_points_agrees_with_gtsam_and_undoes_itself() -> None:
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-10, 10, (40, 2))
+    for _ in range(20):
+        pose = np.array([*rng.uniform(-5, 5, 2), rng.uniform(-math.pi, math.pi)])
+        moved = se2.transform_points(pose, points)
+        expected = [gtsam.Pose2(*pose).transformFrom(gtsam.Point2(*p)) for p in points]
+        np.testing.assert_allclose(moved, expected, atol=1e-12)
+        np.testing.assert_allclose(
+            se2.transform_points(se2.inverse(pose), moved), points, atol=1e-12
+        )
+    assert se2.transform_points(np.zeros(3), np.zeros((0, 2))).shape == (0, 2)
