@@ -102,19 +102,26 @@ def _query(
                 bound = (s - 1) * cell + margin
                 if bound * bound > reach2 or (count == k and best[k - 1] <= bound * bound):
                     break
+            z0, z1 = max(iz - s, 0), min(iz + s, nz - 1)
+            if z0 > z1:
+                continue  # the shell lies above or below the grid
             for x in range(max(ix - s, 0), min(ix + s, nx - 1) + 1):
                 ex = x == ix - s or x == ix + s
                 for y in range(max(iy - s, 0), min(iy + s, ny - 1) + 1):
-                    ey = ex or y == iy - s or y == iy + s
-                    z = max(iz - s, 0)
-                    z_end = min(iz + s, nz - 1)
-                    while z <= z_end:
-                        # Inside the shell's box only its two z faces belong to the shell.
-                        if not ey and z != iz - s and z != iz + s:
-                            z = iz + s if iz + s <= z_end else z_end + 1
-                            continue
-                        c = (x * ny + y) * nz + z
-                        for p in range(starts[c], starts[c + 1]):
+                    column = (x * ny + y) * nz
+                    # A column on the shell's box's side lies in the shell from z0 to z1, one
+                    # range of the sorted points; inside the box only its two z faces do.
+                    for face in range(2):
+                        if ex or y == iy - s or y == iy + s:
+                            if face == 1:
+                                break
+                            first, end = starts[column + z0], starts[column + z1 + 1]
+                        else:
+                            z = iz - s if face == 0 else iz + s
+                            if z < z0 or z > z1:
+                                continue
+                            first, end = starts[column + z], starts[column + z + 1]
+                        for p in range(first, end):
                             dx = points[p, 0] - qx
                             dy = points[p, 1] - qy
                             dz = points[p, 2] - qz
@@ -130,6 +137,5 @@ def _query(
                             found[j] = order[p]
                             if count < k:
                                 count += 1
-                        z += 1
         for j in range(count):
             out[q, j] = found[j]

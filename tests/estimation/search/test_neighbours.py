@@ -74,6 +74,23 @@ def test_nothing_within_reach_is_len_points() -> None:
     assert grid.query(np.array([[0.5, 0.0, 0.0]]), 2, 0.5).tolist() in ([[0, 1]], [[1, 0]])
 
 
+def test_queries_above_below_and_beside_a_flat_grid() -> None:
+    """A floor of points (one layer of cells): queries far above, below and beside it find
+    nothing; one just above or below the layer, or just beyond its edge, finds its point."""
+    u = np.arange(0.0, 1.0, 0.1)
+    a, b = np.meshgrid(u, u)
+    points = np.c_[a.ravel(), b.ravel(), np.zeros(a.size)]
+    grid = PointGrid(points)
+    queries = np.array([[0.5, 0.5, 50.0], [0.5, 0.5, -50.0], [40.0, 0.5, 0.0],
+                        [0.5, 0.5, 0.25], [0.5, 0.5, -0.25], [-0.25, 0.3, 0.0], [0.9, 1.1, 0.05]])  # fmt: skip
+    index = grid.query(queries, 1, 0.3)
+    expected = _tree(points, queries, 1, 0.3)
+    assert index[:3, 0].tolist() == [len(points)] * 3
+    np.testing.assert_allclose(_distances(points, queries, index),
+                               _distances(points, queries, expected), atol=1e-12)  # fmt: skip
+    assert (index[3:, 0] < len(points)).all()
+
+
 def test_an_empty_cloud_and_no_queries() -> None:
     empty = PointGrid(np.zeros((0, 3)))
     assert len(empty) == 0
