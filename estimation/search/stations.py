@@ -54,6 +54,7 @@ from estimation.search.lattice import pose_lattice
 from estimation.search.records import SearchPicture, SearchRecord, pose_of
 from estimation.search.registration import Cloud, Registration, register
 from estimation.search.station_maps import (
+    OLDER_MOST,
     Dwell,
     Station,
     StationMaps,
@@ -404,8 +405,9 @@ def loop_closures(
     """Search each station against the older stations near it, in windows around the predicted
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
     becomes a ``Localize`` event. With ``only``, just those stations are searched; ``maps`` as
-    in :func:`station_links`. The maps are made in mission order (the older stations' map is
-    appended to), then the searches run side by side, then the registrations."""
+    in :func:`station_links`. The stations' own maps are made side by side, the older stations'
+    maps in mission order (each is appended to), then the searches run side by side, then the
+    registrations."""
     search = params.station_search
     workers = search.thread_count()
     stations = [s for s in stations if s.key in estimate]
@@ -413,7 +415,7 @@ def loop_closures(
     ties = mutual_ties(factors)
     relative = relative_covariances(factors, estimate)
     positions = np.array([estimate[s.key][:2] for s in stations], dtype=np.float64).reshape(-1, 2)
-    closures = []
+    near_by: list[tuple[Station, Station, list[Station], np.ndarray]] = []
     for n, station in enumerate(stations):
         if only is not None and station.key not in only:
             continue
@@ -424,7 +426,13 @@ def loop_closures(
         older = [stations[k] for k in near]
         # The new station's and the older ones' poses against the anchor: one joint marginal.
         uncertainty, *placed = relative.around(anchor.key, [station.key, *(s.key for s in older)])
-        older = placed_against(older, placed, uncertainty)
+        near_by.append((station, anchor, placed_against(older, placed, uncertainty), uncertainty))
+    # The bands searched and those ranked by what they saw, made side by side.
+    maps.prepare([s for station, _, older, _ in near_by
+                  for s in (station, *(older if len(older) > OLDER_MOST else ()))],
+                 estimate, ties, workers)  # fmt: skip
+    closures = []
+    for station, anchor, older, uncertainty in near_by:
         older = seen_alike(station, anchor, older, estimate, ties, maps)
         sigma_m, sigma_rad = pose_sigmas(uncertainty)
         local = maps.band(station, estimate, ties)
