@@ -88,7 +88,6 @@ _NEIGHBOURHOOD_M = 12.0
 #: recent neighbours are already tied by mutual observations, and corridors repeat along their
 #: axis, so matching them adds false peaks rather than information.
 _MIN_AGE = 4
-#: A dominant peak becomes a factor only if it lies this close to the predicted pose.
 #: A loop-closure search covers ±``_LOOP_SIGMAS`` standard deviations of the predicted
 #: relative pose (from the graph's joint marginals), within these bounds (window side, m; yaw
 #: reach, rad); its dominant peak becomes a factor when it passes the χ² gate against the
