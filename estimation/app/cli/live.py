@@ -15,6 +15,14 @@ from estimation.app.config import ConfigError
 MissionArgument = Annotated[
     Path, typer.Argument(help="A mission YAML file or a built-in mission name.")
 ]
+LiveViewSecondsOption = Annotated[
+    float,
+    typer.Option(
+        "--view-seconds",
+        min=0.0,
+        help="With --view: keep serving the mission's final state this long (s), then exit.",
+    ),
+]
 
 
 def _say(text: str) -> None:
@@ -146,6 +154,7 @@ def base(
     view: ViewOption = False,
     view_port: ViewPortOption = 8765,
     view_host: ViewHostOption = "127.0.0.1",
+    view_seconds: LiveViewSecondsOption = 0.0,
     config: ConfigOption = None,
 ) -> None:
     """The base station: runs the mission loop with the robots on the network, rebuilds the
@@ -161,7 +170,19 @@ def base(
         if foxglove is not None:  # the final state, for a viewer still watching
             for note in foxglove.publish_result(out / "result", dataset_dir=out):
                 _say(f"live view note: {note}")
+            _linger(foxglove.url, view_seconds)
     print_live(result.loop, out)
+
+
+def _linger(url: str, seconds: float) -> None:
+    """Serve the final state for ``seconds`` (Ctrl-C ends it early: the result is written)."""
+    if seconds <= 0:
+        return
+    _say(f"live view: serving the final state at {url} for {seconds:g} s")
+    try:
+        time.sleep(seconds)
+    except KeyboardInterrupt:
+        _say("live view: stopped")
 
 
 def print_live(loop: dict[str, Any], out: Path) -> None:
@@ -205,6 +226,7 @@ def live(
     ] = False,
     view: ViewOption = False,
     view_port: ViewPortOption = 8765,
+    view_seconds: LiveViewSecondsOption = 0.0,
     config: ConfigOption = None,
 ) -> None:
     """The base and one simulated robot agent per robot as processes on this machine, over
@@ -220,7 +242,8 @@ def live(
     spec = load_mission(path)
     mission_config(spec, option_overrides(config), str(path))  # a bad --config fails here, once
     options = LiveOptions(path, out, spec.robot_names(), port, config, seed, emulate=emulate,
-                          view_port=view_port if view else None)  # fmt: skip
+                          view_port=view_port if view else None,
+                          view_seconds=view_seconds)  # fmt: skip
     supervisor = Supervisor(options, say=_say)
     _say(f"live {path.stem}: base on {supervisor.endpoint}, robots "
          f"{', '.join(spec.robot_names())}; logs in {supervisor.logs}/")  # fmt: skip

@@ -56,6 +56,8 @@ class LiveOptions:
     emulate: bool = False
     #: The base serves a Foxglove live view on this loopback port (None: no view).
     view_port: int | None = None
+    #: How long the base keeps serving the final state to the live view after the mission (s).
+    view_seconds: float = 0.0
 
 
 def _sigint_stops() -> None:
@@ -102,6 +104,8 @@ class Supervisor:
                 "--state", str(default_state(o.out)), *self._common()]  # fmt: skip
         if o.view_port is not None:
             args += ["--view", "--view-port", str(o.view_port)]
+            if o.view_seconds > 0:
+                args += ["--view-seconds", f"{o.view_seconds:g}"]
         self.base = self._spawn("base", args)
 
     def _start_robot(self, robot: str) -> None:

@@ -47,6 +47,9 @@ _TF_TOPICS = ("/tf", "/tf_static")
 #: How long :meth:`LiveView.stop` waits for the server's socket to close (it closes a moment
 #: after the SDK's ``stop`` returns).
 _RELEASE_S = 5.0
+#: How long after the last message logged :meth:`LiveView.stop` lets the server send it: the
+#: SDK sends from queues of its own, has no flush, and drops what is still queued when it stops.
+_FLUSH_S = 0.5
 
 
 def latest_state(messages: Iterable[BagMessage], ros: RosMessages) -> list[BagMessage]:
@@ -127,6 +130,7 @@ class LiveView:
         self._channels: dict[str, Any] = {}
         self._latest: dict[str, tuple[int, bytes]] = {}
         self._first_seen: dict[tuple[str, int], float] = {}
+        self._last_log = -float("inf")  # time.monotonic() of the last message logged
 
     # -- the server ----------------------------------------------------------------------------
 
@@ -162,6 +166,15 @@ class LiveView:
         self._requests.put(None)
         if self._resender is not None:
             self._resender.join()
+        # Subscriptions that reached the server while the resender ended are answered here.
+        while True:
+            try:
+                topic = self._requests.get_nowait()
+            except queue.Empty:
+                break
+            if topic is not None:
+                self._resend_latest(topic)
+        time.sleep(max(0.0, self._last_log + _FLUSH_S - time.monotonic()))
         port = int(server.port)
         server.stop()
         _wait_released(self.host, port, _RELEASE_S)
@@ -215,16 +228,21 @@ class LiveView:
                     self._channels[m.topic] = channel
                 self._latest[m.topic] = (m.stamp_ns, data)
                 channel.log(data, log_time=m.stamp_ns)
+                self._last_log = time.monotonic()
             topics.append(m.topic)
         return topics
 
     def _resend(self) -> None:
         """Publish a topic's latest message again when a client subscribed to it."""
         while (topic := self._requests.get()) is not None:
-            with self._lock:
-                channel, latest = self._channels.get(topic), self._latest.get(topic)
-                if channel is not None and latest is not None:
-                    channel.log(latest[1], log_time=latest[0])
+            self._resend_latest(topic)
+
+    def _resend_latest(self, topic: str) -> None:
+        with self._lock:
+            channel, latest = self._channels.get(topic), self._latest.get(topic)
+            if channel is not None and latest is not None:
+                channel.log(latest[1], log_time=latest[0])
+                self._last_log = time.monotonic()
 
     def publish_result(
         self, result_dir: Path | str, *, dataset_dir: Path | str | None = None

@@ -275,9 +275,11 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     assert not out.exists()
     assert _commands_logged(out) >= 3  # the checkpoint stayed
     assert (robot_dirs(out) / "a" / "commands.jsonl").exists()
-    # resumed, and watched in Foxglove: the base serves its live view while it flies
+    # resumed, and watched in Foxglove: the base serves its live view while it flies, and its
+    # final state for a few seconds after (the resumed mission may end before the client asks)
     view_port = free_port()
-    second = subprocess.Popen([*command, "--view", "--view-port", str(view_port)],
+    second = subprocess.Popen([*command, "--view", "--view-port", str(view_port),
+                               "--view-seconds", "5"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                               preexec_fn=_sigint_default)  # fmt: skip
     try:
@@ -294,6 +296,8 @@ def test_ctrl_c_keeps_the_data_and_the_same_command_resumes(
     assert grid.info.width > 10
     assert second.returncode == 0, stderr[-2000:]
     assert "coopmap base: station budget (4) spent" in stdout
+    base_log = (out.with_name(f".{out.name}.logs") / "base.log").read_text()
+    assert f"live view: serving the final state at ws://127.0.0.1:{view_port} for 5 s" in base_log
     clean, resumed = _poses(reference / "result"), _poses(out / "result")
     for robot in ("a", "b"):
         assert np.abs(resumed[robot][:, :2] - clean[robot][:, :2]).max() < 1e-3

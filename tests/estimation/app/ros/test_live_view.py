@@ -244,6 +244,30 @@ def test_a_client_that_joins_late_gets_every_topic_of_the_bag_latched(
     assert again == data
 
 
+def test_a_subscription_that_comes_as_the_view_stops_still_gets_the_latest_message(
+    result: Path, clients: list[FoxgloveClient]
+) -> None:
+    view = LiveView(port=0).start()
+    try:
+        view.publish_result(result)
+        # The resender has ended (as it does when stop begins) before the client subscribes:
+        # only stop itself can answer the subscription.
+        view._requests.put(None)
+        assert view._resender is not None
+        view._resender.join(timeout=TIMEOUT_S)
+        client = connect(view, clients)
+        client.subscribe({"/map"})
+        deadline = time.monotonic() + TIMEOUT_S
+        while view._requests.empty():
+            assert time.monotonic() < deadline, "the subscription never reached the view"
+            time.sleep(0.005)
+    finally:
+        view.stop()
+    _, data = client.message("/map")
+    grid = typestore().deserialize_cdr(data, "nav_msgs/msg/OccupancyGrid")
+    check_ceiling_band(grid, result)
+
+
 def test_the_voxel_grid_holds_every_occupied_voxel_at_its_cell(
     result: Path, view: LiveView, clients: list[FoxgloveClient]
 ) -> None:
