@@ -17,8 +17,7 @@ anchor and, when the next search of the same anchor asks for the same stations p
 (the views fused so far a prefix of the views wanted, their poses relative to the anchor within
 the tolerance), fuses only the new views into it: fusion is sequential, so appending in order
 gives the grid that fusing the whole list would. Any other change rebuilds the anchor's grid.
-It holds only the older stations that the graph places well against the anchor
-(:func:`placed_against`).
+Which older stations it holds is chosen in :mod:`estimation.search.older_stations`.
 
 Every fusion is counted per station (rays, seconds) in :attr:`StationMaps.work`, for the
 benchmark of per-station work against mission length (``coopmap bench stations``).
@@ -26,7 +25,6 @@ benchmark of per-station work against mission length (``coopmap bench stations``
 
 from __future__ import annotations
 
-import math
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
@@ -60,9 +58,6 @@ __all__ = [
     "fuse_band",
     "fuse_views",
     "mutual_ties",
-    "placed_against",
-    "pose_sigmas",
-    "seen_alike",
     "side_by_side",
     "tied_views",
 ]
@@ -75,9 +70,6 @@ MIN_KNOWN_CELLS = 50
 #: Grids of older stations kept (one per anchor, the most recently used): consecutive stations
 #: mostly share their anchor; a long mission would otherwise hold one grid per station.
 _OLDER_GRIDS = 4
-#: A loop closure matches against at most this many older stations: the anchor and those whose
-#: ceiling bands cover most of the new station's (``seen_alike``; design §7).
-OLDER_MOST = 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -515,65 +507,3 @@ class StationMaps:
     def searched(self, station: Station, seconds: float) -> None:
         """Count a search's wall time to the station searched."""
         self._work(station.key).search_seconds += seconds
-
-
-#: An older station goes into the map a loop closure matches against only when the graph knows
-#: its pose relative to the anchor to within half the new station's uncertainty relative to the
-#: anchor, or to within these (m, rad; standard deviations) when that is more.
-_FUSE_M, _FUSE_RAD = 0.1, math.radians(0.5)
-
-
-def pose_sigmas(covariance: np.ndarray) -> tuple[float, float]:
-    """The largest position and the heading standard deviation of a pose covariance."""
-    position = float(np.linalg.eigvalsh(covariance[:2, :2])[-1])
-    return math.sqrt(max(0.0, position)), math.sqrt(max(0.0, float(covariance[2, 2])))
-
-
-def placed_against(older: list[Station], covariances: Sequence[np.ndarray],
-                   uncertainty: np.ndarray) -> list[Station]:  # fmt: skip
-    """The older stations (in order) a loop closure matches against: those whose pose relative
-    to its anchor (``covariances``, one per station; the anchor's own is zero) is known to
-    within half the new station's (``uncertainty``), or to ``_FUSE_M`` / ``_FUSE_RAD``. One
-    that shares the new station's drift lies in the anchor's frame as far off as it, and the
-    closure would measure the drift as the truth (generated building 106: ten closures 3.5°
-    off; design §7)."""
-    sigma_m, sigma_rad = pose_sigmas(uncertainty)
-    limit_m, limit_rad = max(_FUSE_M, 0.5 * sigma_m), max(_FUSE_RAD, 0.5 * sigma_rad)
-    kept = []
-    for station, covariance in zip(older, covariances, strict=True):
-        m, r = pose_sigmas(covariance)
-        if m <= limit_m and r <= limit_rad:
-            kept.append(station)
-    return kept
-
-
-def seen_alike(
-    station: Station,
-    anchor: Station,
-    older: list[Station],
-    estimate: dict[int, np.ndarray],
-    ties: dict[int, set[int]],
-    maps: StationMaps,
-    most: int = OLDER_MOST,
-) -> list[Station]:
-    """At most ``most`` of the ``older`` stations (in order) for ``station``'s loop closure: the
-    anchor, and those whose ceiling bands, placed by the estimate, hold most of the known cells
-    of the station's band. What a station sees lies down corridors and across rooms, not at the
-    nearest stations (generated building 106; design §7), so the map keeps the stations that saw
-    the same place, and its work stays flat however often the mission came by."""
-    if len(older) <= most:
-        return older
-    local = maps.band(station, estimate, ties)
-    if local is None:
-        return older
-    seen = se2.transform_points(estimate[station.key], local.known_centers())  # the map's frame
-
-    def held(other: Station) -> int:
-        band = maps.band(other, estimate, ties)
-        if band is None:
-            return -1
-        return int(band.covers(se2.transform_points(se2.inverse(estimate[other.key]), seen)).sum())
-
-    ranked = sorted(older, key=lambda s: (s.key != anchor.key, -held(s)))
-    chosen = {s.key for s in ranked[:most]}
-    return [s for s in older if s.key in chosen]

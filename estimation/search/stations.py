@@ -51,19 +51,22 @@ from estimation.search.exhaustive import (
     result_from_scores,
 )
 from estimation.search.lattice import pose_lattice
+from estimation.search.older_stations import (
+    OLDER_MOST,
+    apart_from_drift,
+    placed_against,
+    pose_sigmas,
+    seen_alike,
+)
 from estimation.search.records import SearchPicture, SearchRecord, pose_of
 from estimation.search.registration import Cloud, Registration, register
 from estimation.search.station_maps import (
-    OLDER_MOST,
     Dwell,
     Station,
     StationMaps,
     StationParams,
     View,
     mutual_ties,
-    placed_against,
-    pose_sigmas,
-    seen_alike,
     side_by_side,
 )
 from mapping.band import Band
@@ -425,7 +428,10 @@ def loop_closures(
         older = [stations[k] for k in near]
         # The new station's and the older ones' poses against the anchor: one joint marginal.
         uncertainty, *placed = relative.around(anchor.key, [station.key, *(s.key for s in older)])
-        near_by.append((station, anchor, placed_against(older, placed, uncertainty), uncertainty))
+        older = placed_against(older, placed, uncertainty)
+        tied = relative.around(station.key, [s.key for s in older])
+        older = apart_from_drift(older, anchor, tied)
+        near_by.append((station, anchor, older, uncertainty))
     # The bands searched and those ranked by what they saw, made side by side.
     maps.prepare([s for station, _, older, _ in near_by
                   for s in (station, *(older if len(older) > OLDER_MOST else ()))],

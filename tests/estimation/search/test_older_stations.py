@@ -1,5 +1,6 @@
 """Which older stations a loop closure matches against: those the graph places well against its
-anchor (``placed_against``), and of those at most ``OLDER_MOST``, the ones that saw the new
+anchor (``placed_against``), not tied to the new station much more tightly than the anchor
+(``apart_from_drift``), and of those at most ``OLDER_MOST``, the ones that saw the new
 station's view (``seen_alike``)."""
 
 from __future__ import annotations
@@ -14,14 +15,15 @@ from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import RelativeCovariances, relative_covariances
 from estimation.search import stations as stations_module
-from estimation.search.registration import RegistrationParams
-from estimation.search.station_maps import (
+from estimation.search.older_stations import (
     OLDER_MOST,
-    Station,
+    apart_from_drift,
     placed_against,
     pose_sigmas,
     seen_alike,
 )
+from estimation.search.registration import RegistrationParams
+from estimation.search.station_maps import Station
 from estimation.search.stations import loop_closures
 from mapping.band import Band
 from sensors.geometry import se2
@@ -65,6 +67,40 @@ def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_agains
     zero = np.zeros((3, 3))
     assert placed_against(older, relative.around(anchor.key, [s.key for s in older]), zero) == older
     assert placed_against([anchor], [zero], zero) == [anchor]
+
+
+def test_a_closure_leaves_out_the_older_stations_that_share_the_new_stations_drift() -> None:
+    """a0–a1 tied tightly, a loose stretch to a2, then a2–a7 tied tightly: the new station a7,
+    anchored on a1, shares its drift with a2–a6 (known to it 10× better than a1 is), so only
+    a0 and the anchor are left to match."""
+    tight, loose = (
+        np.diag([1e-4, 1e-4, math.radians(0.05) ** 2]),
+        np.diag([0.01, 0.01, math.radians(1.0) ** 2]),
+    )
+    keys = [pose_key("a", n) for n in range(8)]
+    estimate = {k: np.array([1.0 * n, 0.0, 0.0]) for n, k in enumerate(keys)}
+    step = np.array([1.0, 0.0, 0.0])
+    chain = [tight, loose, tight, tight, tight, tight, tight]
+    factors = [FactorSpec("prior", (keys[0],), estimate[keys[0]], tight * 1e-2, 0)]
+    factors += [FactorSpec("odometry", (keys[n], keys[n + 1]), step, c, n + 1)
+                for n, c in enumerate(chain)]  # fmt: skip
+    stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
+    anchor, older, new = stations[1], stations[:7], stations[7]
+    covariances = relative_covariances(factors, estimate).around(new.key, [s.key for s in older])
+    assert apart_from_drift(older, anchor, covariances) == [stations[0], anchor]
+    # Both are needed to leave a station out: one known better in position only is kept.
+    anchor_covariance = covariances[1]
+    sharper = np.diag([1e-8, 1e-8, anchor_covariance[2, 2]])
+    assert apart_from_drift([stations[0], anchor], anchor, [sharper, anchor_covariance]) == [
+        stations[0],
+        anchor,
+    ]
+    both = np.diag([1e-8, 1e-8, 0.2 * anchor_covariance[2, 2]])
+    assert apart_from_drift([stations[0], anchor], anchor, [both, anchor_covariance]) == [anchor]
+    # The anchor is always kept; it must be among the older stations.
+    assert apart_from_drift([anchor], anchor, [anchor_covariance]) == [anchor]
+    with pytest.raises(ValueError, match="anchor must be one of the older stations"):
+        apart_from_drift([stations[0]], anchor, [covariances[0]])
 
 
 RES = 0.5
