@@ -361,6 +361,73 @@ def test_a_beacon_seen_where_a_robot_that_stood_still_was_observed_is_that_robot
         assert (wrong.a_m, wrong.alpha_rad) == (a_sees_c.range_m, a_sees_c.bearing_rad)
 
 
+def test_a_sign_seen_again_from_the_same_pose_is_not_the_partner_that_drove_away() -> None:
+    """Generated building 103, dwells 360 and 363 in shape: b stood still while c drove 4.9 m
+    between two sweeps; both of b's sweeps held a reflective sign as far from b's beacon as
+    c's beacon stood, and an estimate that had drifted on the long drive placed c nearer the
+    sign. The sign was taken for c's beacon, and the rest of the mission was 16° off. Here a
+    stands still and b drives; the odometry of the drive points at the sign."""
+    b_first, b_then = [3.0, -1.0, 2.2], [2.0, 1.5, -2.0]
+    a_sees_b_first, b_first_sees_a = seen(b_first)
+    a_sees_b, b_sees_a = seen(b_then)
+    sign, _ = seen(about_a_beacon(b_then, math.radians(60.0)))  # as far from a's beacon as b's
+    towards_sign = se2.between(np.array(b_first), np.array(about_a_beacon(b_then, 1.0)))
+    observed: dict[str, list[BeaconDetection]] = {}
+
+    def observations(drive: np.ndarray) -> tuple[EventMaker, list[Observe]]:
+        still = (np.arange(0.0, 100.0, 0.1), np.zeros((1000, 3)))
+        stamps = np.arange(0.0, 100.0, 0.1)
+        odometry = np.where(stamps[:, None] < 25.0, np.zeros(3), drive)
+        maker = EventMaker(Config(), ["a", "b"], {"a": np.zeros(3)},
+                           {"a": still, "b": (stamps, odometry)})  # fmt: skip
+        made = []
+        for number, entry, seen_now in [
+            (0, {"event": "dwell", "t_s": 0.0, "end_s": 10.0, "poses": {"a": 0, "b": 0}},
+             {"a": [a_sees_b_first, sign], "b": [b_first_sees_a]}),
+            (1, {"event": "move", "robot": "b", "from_index": 0, "to_index": 1,
+                 "start_s": 20.0, "t_s": 30.0}, {}),
+            (2, {"event": "dwell", "t_s": 30.0, "end_s": 40.0, "poses": {"a": 0, "b": 1}},
+             {"a": [sign, a_sees_b], "b": [b_sees_a]}),
+        ]:  # fmt: skip
+            observed.update(seen_now)
+            entry.update(reference="a", mapper="b")
+            streams = {
+                r: RobotStream([], np.zeros(0), dwell_sweeps={
+                    number: (SimpleNamespace(points_scanner=r, reflector=None), None)})
+                for r in "ab"
+            }  # fmt: skip
+            made += [e for e in maker.feed(number, entry, streams) if isinstance(e, Observe)]
+        return maker, made
+
+    def kept(maker: EventMaker, a_index: int, b_index: int) -> list[BeaconDetection]:
+        sweep = SimpleNamespace(index=a_index, detections=[sign, a_sees_b])
+        return maker._not_static("a", "b", {"a": a_index, "b": b_index}, sweep)  # type: ignore[arg-type]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(events, "detect_beacons", lambda robot, *_, **__: (observed[robot], None))
+        maker, (first, then) = observations(towards_sign)
+        assert first.a_m == a_sees_b_first.range_m
+        assert (then.a_m, then.alpha_rad) == (a_sees_b.range_m, a_sees_b.bearing_rad)
+        # a's last sweep (dwell 2) holds the sign and b's beacon, and b has not moved since.
+        assert kept(maker, 0, 1) == [sign, a_sees_b]
+        # Without the first sweep's sign, the estimate's pick is the sign (the gate passes it).
+        patch.setattr(events, "_MOVED_M", 1e9)
+        _, (_, wrong) = observations(towards_sign)
+        assert (wrong.a_m, wrong.alpha_rad) == (sign.range_m, sign.bearing_rad)
+        patch.setattr(events, "_MOVED_M", 0.2)
+        # b's beacon moved 5 cm by its odometry: it may stand where it stood; nothing is set
+        # aside. Nor is anything when a itself has moved since its last sweep.
+        maker, _ = observations(np.array([0.05, 0.0, 0.0]))
+        maker.last["a"] = (0, [sign], {"a": 0, "b": 0})
+        assert kept(maker, 0, 1) == [sign, a_sees_b]
+        maker, _ = observations(towards_sign)
+        maker.last["a"] = (0, [sign], {"a": 0, "b": 0})
+        assert kept(maker, 0, 1) == [a_sees_b]
+        assert kept(maker, 1, 1) == [sign, a_sees_b]
+        # A partner pose the odometry never reached (no move logged): nothing is set aside.
+        assert kept(maker, 0, 2) == [sign, a_sees_b]
+
+
 def test_only_detections_within_the_noise_of_a_held_one_are_set_aside() -> None:
     """The held detection is c's beacon; another as far but 1° aside (four bearing sigmas
     each), or 10 cm nearer, is not."""
