@@ -29,6 +29,22 @@ from mapping.band import Band
 from sensors.geometry import se2
 from tests.estimation.search.test_station_maps import TOLERANT, revisiting_mission
 
+TIGHT = np.diag([1e-4, 1e-4, math.radians(0.05) ** 2])
+
+
+def chain_of_stations(
+    chain: list[np.ndarray],
+) -> tuple[list[FactorSpec], dict[int, np.ndarray], list[Station]]:
+    """Stations a0… 1 m apart in a row, a prior on a0 and odometry with the ``chain``'s
+    covariances between them: (factors, estimate, stations)."""
+    keys = [pose_key("a", n) for n in range(len(chain) + 1)]
+    estimate = {k: np.array([1.0 * n, 0.0, 0.0]) for n, k in enumerate(keys)}
+    step = np.array([1.0, 0.0, 0.0])
+    factors = [FactorSpec("prior", (keys[0],), estimate[keys[0]], TIGHT * 1e-2, 0)]
+    factors += [FactorSpec("odometry", (keys[n], keys[n + 1]), step, c, n + 1)
+                for n, c in enumerate(chain)]  # fmt: skip
+    return factors, estimate, [Station("a", n, 40.0 * n, ()) for n in range(len(keys))]
+
 
 def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_against_its_anchor() -> (
     None
@@ -36,19 +52,11 @@ def test_a_loop_closure_matches_only_older_stations_the_graph_places_well_agains
     """Stations a0–a3 tied tightly, then an untied stretch (3° of heading), then a4–a6 tied
     tightly again: a new station after them, anchored on a1, matches a0–a3 only. a4–a6 lie in
     the anchor's frame as far off as the new station itself (generated building 106)."""
-    tight, loose = (
-        np.diag([1e-4, 1e-4, math.radians(0.05) ** 2]),
-        np.diag([0.01, 0.01, math.radians(3.0) ** 2]),
-    )
-    keys = [pose_key("a", n) for n in range(8)]
-    estimate = {k: np.array([1.0 * n, 0.0, 0.0]) for n, k in enumerate(keys)}
-    step = np.array([1.0, 0.0, 0.0])
-    chain = [tight, tight, tight, loose, tight, tight, loose]
-    factors = [FactorSpec("prior", (keys[0],), estimate[keys[0]], tight * 1e-2, 0)]
-    factors += [FactorSpec("odometry", (keys[n], keys[n + 1]), step, c, n + 1)
-                for n, c in enumerate(chain)]  # fmt: skip
+    tight, loose = TIGHT, np.diag([0.01, 0.01, math.radians(3.0) ** 2])
+    factors, estimate, stations = chain_of_stations([tight, tight, tight, loose, tight, tight,
+                                                     loose])  # fmt: skip
+    keys, step = [s.key for s in stations], np.array([1.0, 0.0, 0.0])
     relative = relative_covariances(factors, estimate)
-    stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
     anchor, older, new = stations[1], stations[:7], stations[7]
 
     def kept(relative: RelativeCovariances, of: list[Station] = older) -> list[Station]:
@@ -73,18 +81,8 @@ def test_a_closure_leaves_out_the_older_stations_that_share_the_new_stations_dri
     """a0–a1 tied tightly, a loose stretch to a2, then a2–a7 tied tightly: the new station a7,
     anchored on a1, shares its drift with a2–a6 (known to it 10× better than a1 is), so only
     a0 and the anchor are left to match."""
-    tight, loose = (
-        np.diag([1e-4, 1e-4, math.radians(0.05) ** 2]),
-        np.diag([0.01, 0.01, math.radians(1.0) ** 2]),
-    )
-    keys = [pose_key("a", n) for n in range(8)]
-    estimate = {k: np.array([1.0 * n, 0.0, 0.0]) for n, k in enumerate(keys)}
-    step = np.array([1.0, 0.0, 0.0])
-    chain = [tight, loose, tight, tight, tight, tight, tight]
-    factors = [FactorSpec("prior", (keys[0],), estimate[keys[0]], tight * 1e-2, 0)]
-    factors += [FactorSpec("odometry", (keys[n], keys[n + 1]), step, c, n + 1)
-                for n, c in enumerate(chain)]  # fmt: skip
-    stations = [Station("a", n, 40.0 * n, ()) for n in range(8)]
+    loose = np.diag([0.01, 0.01, math.radians(1.0) ** 2])
+    factors, estimate, stations = chain_of_stations([TIGHT, loose, *[TIGHT] * 5])
     anchor, older, new = stations[1], stations[:7], stations[7]
     covariances = relative_covariances(factors, estimate).around(new.key, [s.key for s in older])
     assert apart_from_drift(older, anchor, covariances) == [stations[0], anchor]
