@@ -50,6 +50,11 @@ _RELEASE_S = 5.0
 #: How long after the last message logged :meth:`LiveView.stop` lets the server send it: the
 #: SDK sends from queues of its own, has no flush, and drops what is still queued when it stops.
 _FLUSH_S = 0.5
+#: How long the resender waits after a subscription before it resends the topic's latest
+#: message. The SDK's server has been reported to call ``on_subscribe`` before the new
+#: subscriber is registered, so that a message logged at once does not reach it (foxglove-sdk
+#: pull request 533, 2–5 % of latched messages); not seen with the version used here.
+_SETTLE_S = 0.05
 
 
 def latest_state(messages: Iterable[BagMessage], ros: RosMessages) -> list[BagMessage]:
@@ -167,13 +172,18 @@ class LiveView:
         if self._resender is not None:
             self._resender.join()
         # Subscriptions that reached the server while the resender ended are answered here.
+        pending = []
         while True:
             try:
                 topic = self._requests.get_nowait()
             except queue.Empty:
                 break
             if topic is not None:
-                self._resend_latest(topic)
+                pending.append(topic)
+        if pending:
+            time.sleep(_SETTLE_S)
+        for topic in pending:
+            self._resend_latest(topic)
         time.sleep(max(0.0, self._last_log + _FLUSH_S - time.monotonic()))
         port = int(server.port)
         server.stop()
@@ -235,6 +245,7 @@ class LiveView:
     def _resend(self) -> None:
         """Publish a topic's latest message again when a client subscribed to it."""
         while (topic := self._requests.get()) is not None:
+            time.sleep(_SETTLE_S)
             self._resend_latest(topic)
 
     def _resend_latest(self, topic: str) -> None:

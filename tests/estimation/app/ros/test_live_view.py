@@ -47,6 +47,10 @@ TIMEOUT_S = 10.0
 LAYOUT = REPO / "configs" / "foxglove" / "coopmap.json"
 
 
+class SubscriptionRefusedError(Exception):
+    """The server refused a subscription to a channel it had advertised."""
+
+
 class FoxgloveClient:
     """A minimal client of the Foxglove WebSocket protocol: the HTTP upgrade with the
     ``foxglove.sdk.v1`` subprotocol, masked text frames out, frames in (text: JSON operations;
@@ -128,6 +132,10 @@ class FoxgloveClient:
             self.server_info = operation
         elif operation["op"] == "advertise":
             self.channels.update({c["id"]: c for c in operation["channels"]})
+        elif operation["op"] == "status" and "Unknown channel ID" in operation.get("message", ""):
+            # The SDK's server advertised a channel it had not yet recorded for this client
+            # (the client connected as the channel was made): this connection cannot have it.
+            raise SubscriptionRefusedError(operation["message"])
 
     def wait_for_topics(self, topics: set[str]) -> dict[str, dict[str, Any]]:
         """Read until every topic of ``topics`` is advertised; the advertised channels."""
@@ -242,6 +250,21 @@ def test_a_client_that_joins_late_gets_every_topic_of_the_bag_latched(
     late.subscribe({"/map"})
     _, again = late.message("/map")
     assert again == data
+
+
+def test_every_client_that_subscribes_gets_the_latched_message(
+    result: Path, view: LiveView, clients: list[FoxgloveClient]
+) -> None:
+    """Twenty clients in a row, each subscribing as it connects: each gets the latched map,
+    the same bytes."""
+    view.publish_result(result)
+    got = []
+    for _ in range(20):
+        client = connect(view, clients)
+        client.subscribe({"/map"})
+        got.append(client.message("/map")[1])
+        client.close()
+    assert len(set(got)) == 1
 
 
 def test_a_subscription_that_comes_as_the_view_stops_still_gets_the_latest_message(
