@@ -206,8 +206,8 @@ class EventMaker:
         something that stands still — a reflective sign, or a third robot that has not moved.
         Generated building 103, three robots: b's sweeps from b50 held a sign 2.18 m away in
         both dwells while c drove 4.9 m between them, and the sign passed the distance gate
-        as c's beacon (the estimate, after a long untied drive, placed c 1.3 m off): the
-        rest of the mission was 16° off."""
+        as c's beacon (the estimate, after a drive its odometry knew to 25 cm, placed c's
+        beacon 3.1 m from where it stood): the rest of the mission was 16° off."""
         if observer not in self.last:
             return sweep.detections
         index, before, then = self.last[observer]
