@@ -172,17 +172,10 @@ class LiveView:
         if self._resender is not None:
             self._resender.join()
         # Subscriptions that reached the server while the resender ended are answered here.
-        pending = []
-        while True:
-            try:
-                topic = self._requests.get_nowait()
-            except queue.Empty:
-                break
-            if topic is not None:
-                pending.append(topic)
+        pending, _ = self._queued()
         if pending:
             time.sleep(_SETTLE_S)
-        for topic in pending:
+        for topic in dict.fromkeys(pending):
             self._resend_latest(topic)
         time.sleep(max(0.0, self._last_log + _FLUSH_S - time.monotonic()))
         port = int(server.port)
@@ -245,8 +238,26 @@ class LiveView:
     def _resend(self) -> None:
         """Publish a topic's latest message again when a client subscribed to it."""
         while (topic := self._requests.get()) is not None:
-            time.sleep(_SETTLE_S)
-            self._resend_latest(topic)
+            time.sleep(_SETTLE_S)  # once for the subscriptions that come together
+            more, ended = self._queued()
+            for each in dict.fromkeys([topic, *more]):
+                self._resend_latest(each)
+            if ended:
+                return
+
+    def _queued(self) -> tuple[list[str], bool]:
+        """The topics whose subscriptions are queued now, and whether the end is among them."""
+        topics: list[str] = []
+        ended = False
+        while True:
+            try:
+                topic = self._requests.get_nowait()
+            except queue.Empty:
+                return topics, ended
+            if topic is None:
+                ended = True
+            else:
+                topics.append(topic)
 
     def _resend_latest(self, topic: str) -> None:
         with self._lock:
