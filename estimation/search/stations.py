@@ -350,21 +350,28 @@ def scan_links(
     maps: StationMaps | None = None,
 ) -> tuple[list[Localize], list[SearchRecord]]:
     """Link each scan of a station's dwells that no mutual observation ties (beacon missed,
-    observation gated out) to the station as :func:`station_links` links stations, so that it
-    rests on more than the mapper's odometry (design §7). Scans at a pose that is itself a
-    station are left to the station links; ``only``, ``maps`` as there."""
+    observation gated out) to the station as :func:`station_links` links stations, and to its
+    own robot's last station before it, so that it rests on more than the mapper's odometry
+    (design §7): a scan taken out of the station's view often still overlaps the mapper's own
+    last station. Scans at a pose that is itself a station are left to the station links;
+    ``only``, ``maps`` as there."""
     stations = [s for s in stations if s.key in estimate]
     maps = StationMaps(params) if maps is None else maps
     ties = mutual_ties(factors)
     keys = {s.key for s in stations}
-    pairs = [
-        (station, Station(view.robot, view.index, station.time_s, (view,)))
-        for station in stations
-        if only is None or station.key in only
-        for view in station.views
-        if view.key not in ties and view.key not in keys and view.key in estimate
-    ]
-    return _links(pairs, estimate, maps, ties, params)
+    pairs = []
+    for station in stations:
+        if only is not None and station.key not in only:
+            continue
+        for view in station.views:
+            if view.key in ties or view.key in keys or view.key not in estimate:
+                continue
+            scan = Station(view.robot, view.index, station.time_s, (view,))
+            pairs.append((station, scan))
+            own = [s for s in stations if s.robot == view.robot and s.index < view.index]
+            if own:
+                pairs.append((max(own, key=lambda s: s.index), scan))
+    return _links(dict.fromkeys(pairs), estimate, maps, ties, params)
 
 
 @dataclass(frozen=True)

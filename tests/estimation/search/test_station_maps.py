@@ -277,9 +277,9 @@ def test_a_link_over_a_thin_overlap_must_be_dominant(
 
 def test_a_scan_without_a_mutual_observation_is_linked_to_its_station(mission) -> None:
     """The mapper's scan a1 at station b1 whose beacon was missed (no mutual factor), believed
-    9 cm and 1.5° off by odometry: linked to the station on their points, within a centimetre
-    and 0.1°. Scans tied by a mutual observation, and scans at a station's own pose, get no
-    scan link."""
+    9 cm and 1.5° off by odometry: linked to the station on their points, and to its own robot's
+    last station a0, each within a centimetre and 0.1°. Scans tied by a mutual observation, and
+    scans at a station's own pose, get no scan link."""
     stations, factors = mission
     params = dataclasses.replace(EXACT, registration=RegistrationParams())
     a1 = pose_key("a", 1)
@@ -287,20 +287,45 @@ def test_a_scan_without_a_mutual_observation_is_linked_to_its_station(mission) -
     estimate = dict(TRUTH)
     estimate[a1] = se2.compose(TRUTH[a1], np.array([0.06, 0.07, np.radians(1.5)]))
     events, records = scan_links(stations, estimate, untied, params)
-    assert [(r.station, r.against, r.kind) for r in records] == [("a1", "b1", "link")]
-    (event,) = events
-    assert (event.robot, event.index, event.reference) == ("a", 1, ("b", 1))
-    truth = se2.between(TRUTH[pose_key("b", 1)], TRUTH[a1])
-    assert event.pose is not None
-    assert np.hypot(*(np.array(event.pose[:2]) - truth[:2])) < 0.01
-    assert abs(event.pose[2] - truth[2]) < np.radians(0.1)
-    assert records[0].used
+    assert [(r.station, r.against, r.kind) for r in records] == [
+        ("a1", "b1", "link"),
+        ("a1", "a0", "link"),
+    ]
+    assert all(r.used for r in records)
+    assert [(e.robot, e.index, e.reference) for e in events] == [
+        ("a", 1, ("b", 1)),
+        ("a", 1, ("a", 0)),
+    ]
+    for event in events:
+        assert event.reference is not None
+        truth = se2.between(TRUTH[pose_key(*event.reference)], TRUTH[a1])
+        assert event.pose is not None
+        assert np.hypot(*(np.array(event.pose[:2]) - truth[:2])) < 0.01
+        assert abs(event.pose[2] - truth[2]) < np.radians(0.1)
     # every scan tied: nothing to link; only the station asked for is looked at
     assert scan_links(stations, estimate, factors, params) == ([], [])
     assert scan_links(stations, estimate, untied, params, only={pose_key("a", 0)}) == ([], [])
     # a scan at a pose that is also a station's is the station links' business
     as_station = [*stations, Station("a", 1, 200.0, (stations[1].views[1],))]
     assert scan_links(as_station, estimate, untied, params) == ([], [])
+
+
+def test_a_scan_is_linked_to_its_own_robots_last_station_before_it_only(mission) -> None:
+    """Of the mapper's own stations only the last one before the scan is searched against (one
+    not in the estimate is passed over for the one before it); a mapper with no station before
+    the scan gets the reference's station link alone."""
+    stations, factors = mission
+    params = dataclasses.replace(EXACT, registration=RegistrationParams())
+    a3 = pose_key("a", 3)
+    untied = [f for f in factors if a3 not in f.keys]
+    _, records = scan_links(stations, dict(TRUTH), untied, params)
+    assert [(r.station, r.against) for r in records] == [("a3", "b3"), ("a3", "a2")]
+    without_a = [s for s in stations if s.robot != "a"]
+    _, records = scan_links(without_a, dict(TRUTH), untied, params)
+    assert [(r.station, r.against) for r in records] == [("a3", "b3")]
+    unplaced = {k: v for k, v in TRUTH.items() if k != pose_key("a", 2)}
+    _, records = scan_links(stations, unplaced, untied, params)
+    assert [(r.station, r.against) for r in records] == [("a3", "b3"), ("a3", "a0")]
 
 
 def test_a_relocalization_is_registered_on_the_mapped_points(mission) -> None:
