@@ -253,17 +253,19 @@ def _check_event(event: dict[str, Any], robots: list[str], where: str) -> None:
 
 @dataclass
 class Sweep:
-    """One robot's 3D scan during one dwell, and the beacons found in it."""
+    """One robot's 3D scan during one dwell, and the beacons found in it. Of the scan only its
+    points are kept: each point's range, bearing, elevation, flags and time served the beacon
+    detection and would be 60 % of the sweep's memory (office_loop: 55 MB)."""
 
     robot: str
     index: int
     dwell: int
-    scan: Scan3D
+    points_scanner: np.ndarray  # (N, 3)
     detections: list[BeaconDetection]
 
     def view(self) -> View:
         """The sweep as the station searches see it."""
-        return View(self.robot, self.index, self.scan.points_scanner, self.dwell)
+        return View(self.robot, self.index, self.points_scanner, self.dwell)
 
 
 @dataclass

@@ -153,7 +153,7 @@ class EventMaker:
                 self.missing.append(f"{robot}{index} (dwell {number}): {why}")
                 continue
             detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **self.params)
-            sweep = Sweep(robot, index, number, scan, detections)
+            sweep = Sweep(robot, index, number, scan.points_scanner, detections)
             self.sweeps.append(sweep)
             in_dwell[robot] = sweep
         reference, mapper = entry.get("reference"), entry.get("mapper")

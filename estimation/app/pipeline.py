@@ -11,10 +11,7 @@ result folder (docs/results.md). What flows between the steps are named frozen v
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import dataclasses
-import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,6 +35,7 @@ from estimation.app.dataset import (
     with_dwell_sweeps,
 )
 from estimation.app.events import Counts, build_events
+from estimation.app.memory import give_back_memory
 from estimation.app.results import BatchOutput, write_results
 from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
 from estimation.errors import EstimationError
@@ -152,29 +150,12 @@ def prepare(
         why = "; ".join(stream.counts.missing_sweeps[:3]) or "the dataset has no dwells"
         raise EstimationError(f"{dataset.path}: no sweep in any dwell ({why})")
     timings = Timings(decode=decode, sweeps_and_beacons=sweeps + time.perf_counter() - clock)
-    _give_back_memory()  # the decoded scans
+    # The events hold the sweeps' points; the streams keep their counts.
+    streams = {r: dataclasses.replace(s, dwell_sweeps={}) for r, s in streams.items()}
+    give_back_memory()  # the decoded scans, the sweeps' other fields
     return Prepared(
         dataset, streams, stream.events, stream.sweeps, stream.counts, stream.builder, timings
     )
-
-
-@functools.cache
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim``, or None where the C library has none."""
-    try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or None).malloc_trim
-    except (OSError, AttributeError):
-        return None
-
-
-def _give_back_memory() -> None:
-    """Return the heap the last stage freed to the system. glibc keeps freed memory in its
-    arenas (one per thread that allocated), so a stage's working set stays in the process's
-    RSS while the next stage adds its own (office_loop: 40 MB after decoding, 77 MB after the
-    two-thread searches)."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
 
 
 def _connected(factors: list[FactorSpec], root: int) -> set[int]:
@@ -247,7 +228,7 @@ def _finish(
         else np.zeros((0, 4, 4))
     )
     grid = fuse_scans(
-        [MapScan(s.scan.points_scanner) for s in used],
+        [MapScan(s.points_scanner) for s in used],
         transforms,
         GridParams(**config.grid.model_dump()),
     )
@@ -421,7 +402,7 @@ def run_batch(
     gauge = pose_key(dataset.robots[0], 0)
     dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
     searched = _search_stages(prepared, builder, params, progress)
-    _give_back_memory()  # the search threads' working sets, freed with the stages' maps
+    give_back_memory()  # the search threads' working sets, freed with the stages' maps
     factors, result = searched.factors, searched.result
     validation = None
     if searched.events:
@@ -542,7 +523,7 @@ def finish_isam(
     clock = time.perf_counter()
     params = station_params(config)
     searched = _search_stages(prepared, prepared.builder, params, progress)
-    _give_back_memory()  # the search threads' working sets, freed with the stages' maps
+    give_back_memory()  # the search threads' working sets, freed with the stages' maps
     for event in searched.events:
         smoother.add(event)
     smoother.settle()

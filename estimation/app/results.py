@@ -187,7 +187,7 @@ def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str,
         sweep = output.sweeps[0]
         beacons = np.array([d.center_scanner for d in sweep.detections]).reshape(-1, 3)
         title = f"sweep of {sweep.robot}{sweep.index} (dwell {sweep.dwell})"
-        render_sweep(sweep.scan.points_scanner, figures / "sweep.png", beacons=beacons, title=title)
+        render_sweep(sweep.points_scanner, figures / "sweep.png", beacons=beacons, title=title)
         drawn["sweep"] = {"file": "sweep.png", "pose": f"{sweep.robot}{sweep.index}"}
     pdfs = []
     for name, record in _pdf_figures(output.searches):

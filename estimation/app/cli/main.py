@@ -25,6 +25,7 @@ from estimation.app.cli import (
     ros,
     world,
 )
+from estimation.app.memory import limit_arenas
 
 __all__ = ["app", "main"]
 
@@ -61,7 +62,9 @@ app.command("live")(live.live)
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point. The search threads share two malloc arenas
+    (:mod:`estimation.app.memory`)."""
+    limit_arenas(2)
     try:
         app()
     except KeyboardInterrupt:

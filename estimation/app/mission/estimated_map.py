@@ -97,7 +97,7 @@ class EstimatedMap:
         if not sweeps:
             return
         fuse_scans(
-            [MapScan(s.scan.points_scanner) for s in sweeps],
+            [MapScan(s.points_scanner) for s in sweeps],
             np.stack([pose2_matrix(*p) @ self.mount for p in poses]),
             self.params,
             grid,

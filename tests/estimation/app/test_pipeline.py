@@ -332,22 +332,3 @@ def test_a_mission_without_mutual_observations_fails_in_one_line(
     report = json.loads((copy / "result" / "report.json").read_text())
     assert report["observations"] == 0
     assert report["robots"]["a"]["poses"] == 3  # the gauge's own result is kept
-
-
-def test_freed_heap_is_given_back_where_the_c_library_can() -> None:
-    """glibc keeps a stage's freed heap in the process; ``batch`` hands it back between stages.
-    Where the C library has no ``malloc_trim`` the step is skipped, never an error."""
-    import platform
-
-    from estimation.app import pipeline
-
-    pipeline._malloc_trim.cache_clear()
-    trim = pipeline._malloc_trim()
-    assert callable(trim) == (platform.libc_ver()[0] == "glibc")
-    assert pipeline._give_back_memory() is None
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(pipeline.ctypes, "CDLL", lambda *_: (_ for _ in ()).throw(OSError("none")))
-        pipeline._malloc_trim.cache_clear()
-        assert pipeline._malloc_trim() is None
-        assert pipeline._give_back_memory() is None
-    pipeline._malloc_trim.cache_clear()

@@ -28,14 +28,14 @@ def sweep(n: int) -> Any:
     """Robot a's sweep n: a room seen from a place of its own, in the scanner's frame."""
     place = np.array([1.0 + 0.35 * n, 1.0 + 0.15 * (n % 5), 0.4])
     points = room_scan(place, ROOM, azimuth_steps=90, elevation_steps=30) - place
-    return SimpleNamespace(robot="a", index=n, dwell=n, scan=SimpleNamespace(points_scanner=points))
+    return SimpleNamespace(robot="a", index=n, dwell=n, points_scanner=points)
 
 
 def fused_afresh(map_: EstimatedMap) -> OccupancyGrid:
     """The map's sweeps fused one after the other at the poses it says it holds them at."""
     mount = T_robot_scanner(CONFIG)
     return fuse_scans(
-        [Scan(s.scan.points_scanner) for s in map_.order],
+        [Scan(s.points_scanner) for s in map_.order],
         np.stack([pose2_matrix(*map_.fused[id(s)]) @ mount for s in map_.order]),
         map_.params,
     )
