@@ -526,7 +526,15 @@ def finish_isam(
     give_back_memory()  # the search threads' working sets, freed with the stages' maps
     for event in searched.events:
         smoother.add(event)
-    smoother.settle()
+    # iSAM2 cannot tell an outlier (docs/design.md §5): the factors the batch optimum after the
+    # last stage dropped, mutual observations and searches, are left out of the settled estimate.
+    dropped = {
+        (f.event, f.kind, f.keys)
+        for f, ok in zip(searched.factors, searched.result.inliers, strict=True)
+        if not ok
+    }
+    inliers = np.array([(f.event, f.kind, f.keys) not in dropped for f in smoother.builder.factors])
+    smoother.settle(leave_out=set(np.flatnonzero(~inliers).tolist()))
     estimate = smoother.estimate()
     relocalized = _relocalized(prepared, estimate, params)
     timings = dataclasses.replace(
@@ -535,7 +543,7 @@ def finish_isam(
     builder = smoother.builder
     factors = list(builder.factors)
     update_ms = np.array(smoother.update_seconds) * 1e3
-    solution = Solution(builder, factors, estimate, np.ones(len(factors), dtype=bool), [])
+    solution = Solution(builder, factors, estimate, inliers, [])
     return _finish(
         prepared, solution, timings, out,
         {"global_localization": {"searches": records_json(searched.records),

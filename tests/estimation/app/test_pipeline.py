@@ -254,6 +254,38 @@ def test_isam_matches_batch_and_resumes_after_a_kill(
         run_isam(dataset, tmp_path / "never", resume=True)
 
 
+def test_isam_leaves_out_what_the_batch_optimum_dropped(
+    dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """iSAM2 cannot tell an outlier: the factors the batch optimum after the searches dropped
+    stay out of its settled estimate and are reported as outliers, as batch reports them."""
+    from estimation.app import pipeline
+    from estimation.posegraph.keys import pose_key
+    from estimation.posegraph.smoother import BatchResult
+
+    real = pipeline.optimize_batch
+    dropped: list[str] = []
+    optimum: dict[int, np.ndarray] = {}
+
+    def dropping(factors, initial, robust="gnc_tls"):  # type: ignore[no-untyped-def]
+        """The real optimum without the last mutual observation, which it marks dropped."""
+        last = max(i for i, f in enumerate(factors) if f.kind == "mutual")
+        kept = real([f for i, f in enumerate(factors) if i != last], initial, robust=robust)
+        inliers = np.insert(kept.inliers, last, False)
+        dropped[:] = [factors[last].describe()]
+        optimum.update(kept.estimate)
+        return BatchResult(kept.estimate, inliers, kept.error, kept.seconds)
+
+    monkeypatch.setattr(pipeline, "optimize_batch", dropping)
+    out = pipeline.run_isam(dataset, tmp_path / "isam", figures=False)
+    assert out is not None
+    assert out.report["outlier_factors"] == dropped
+    # the settled estimate is the last batch optimum, which went without it
+    for robot, poses in out.poses.items():
+        for index, pose in poses.items():
+            np.testing.assert_allclose(pose[:2], optimum[pose_key(robot, index)][:2], atol=1e-4)
+
+
 def test_metrics_hold_the_gate_table_and_the_searches(dataset: Path, result: Path) -> None:
     metrics = evaluate(dataset)
     gate, mutual = metrics["mutual"]["gate"], metrics["mutual"]

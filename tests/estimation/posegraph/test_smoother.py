@@ -12,14 +12,16 @@ from scipy.stats import chi2
 
 from estimation.app.evaluation.metrics import ate
 from estimation.errors import EstimationError
+from estimation.posegraph import smoother as smoother_module
 from estimation.posegraph.events import Localize, Move, Start
-from estimation.posegraph.graph import GraphBuilder, GraphSettings
+from estimation.posegraph.graph import FactorSpec, GraphBuilder, GraphSettings
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.smoother import (
     IncrementalSmoother,
     factor_fingerprint,
     marginal_covariances,
     optimize_batch,
+    truncated_cost,
 )
 from estimation.posegraph.synthetic import leapfrog, search_pdf
 from sensors.geometry import se2
@@ -165,6 +167,85 @@ def test_gnc_with_10_percent_gross_outliers_on_2000_poses() -> None:
     # Without robust estimation the same graph is ruined.
     plain = optimize_batch(dirty_builder.factors, dirty_builder.initial_values(), "none")
     assert ate(as_array(plain.estimate, keys), truth, align=False).rmse_m > 0.5
+
+
+COALITION = Path(__file__).parent / "data" / "gnc_coalition.npz"
+
+
+def coalition_graph() -> tuple[list[FactorSpec], dict[int, np.ndarray]]:
+    """The last batch graph of generated building 106 (three robots, 358 poses, 1,134 factors,
+    seed 106 of the flight in which its own-station scan links were new): its factors and
+    initial values."""
+    with np.load(COALITION) as data:
+        factors = [
+            FactorSpec(str(kind), tuple(int(k) for k in keys if k >= 0), m, c, int(event))  # type: ignore[arg-type]
+            for kind, keys, m, c, event in zip(
+                data["kind"],
+                data["keys"],
+                data["measurement"],
+                data["covariance"],
+                data["event"],
+                strict=True,
+            )
+        ]
+        initial = {int(k): p for k, p in zip(data["initial_keys"], data["initial"], strict=True)}
+    return factors, initial
+
+
+def test_gnc_keeps_the_inliers_of_least_truncated_cost(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three wrong loop closures that agree with each other (9–17 cm, 1.5–2.2° off) and a wrong
+    mutual observation outvote four right factors in one GNC run (truncated cost 329); a
+    second run that must keep the four drops the wrong ones instead (293), and wins."""
+    factors, initial = coalition_graph()
+    cap = chi2.ppf(0.999, 3)
+    wrong = {
+        ("mutual", (pose_key("b", 49), pose_key("c", 50))),
+        ("global", (pose_key("c", 47), pose_key("c", 55))),
+        ("global", (pose_key("b", 43), pose_key("c", 74))),
+        ("global", (pose_key("b", 43), pose_key("c", 75))),
+    }
+    result = optimize_batch(factors, initial)
+    assert {(factors[i].kind, factors[i].keys) for i in result.outliers} == wrong
+    assert truncated_cost(factors, result.estimate, cap) == pytest.approx(293.5, abs=0.5)
+    # one run alone keeps the wrong closures
+    runs = []
+    first_only = smoother_module._gnc
+
+    def once(*args, **kwargs):  # type: ignore[no-untyped-def]
+        runs.append(args[3].sum())
+        if len(runs) > 1:
+            raise AssertionError("a second GNC run")
+        return first_only(*args, **kwargs)
+
+    monkeypatch.setattr(smoother_module, "_gnc", once)
+    with pytest.raises(AssertionError, match="a second GNC run"):
+        optimize_batch(factors, initial)
+    monkeypatch.setattr(smoother_module, "_gnc", first_only)
+    known = np.array([not f.robust for f in factors])
+    graph = smoother_module.to_gtsam_graph(factors, "none")
+    values = smoother_module.to_gtsam_values(initial)
+    alone, inliers = first_only(factors, graph, values, known, 0.999, 100)
+    kept_wrong = {(f.kind, f.keys) for f, ok in zip(factors, inliers, strict=True) if ok} & wrong
+    assert kept_wrong == wrong
+    assert (~inliers).sum() == 4  # four right factors dropped instead
+    cost = truncated_cost(factors, smoother_module.extract_poses(alone), cap)
+    assert cost == pytest.approx(328.6, abs=0.5)
+
+
+def test_settling_can_leave_factors_out(mission) -> None:  # type: ignore[no-untyped-def]
+    """The settled estimate without some factors is the batch optimum of the others."""
+    builder = build(mission.events)
+    smoother = IncrementalSmoother().run(mission.events)
+    mutual = [i for i, f in enumerate(builder.factors) if f.kind == "mutual"]
+    out = set(mutual[5:8])
+    smoother.settle(leave_out=out)
+    kept = [f for i, f in enumerate(builder.factors) if i not in out]
+    batch = optimize_batch(kept, builder.initial_values(), robust="none")
+    keys = sorted(batch.estimate)
+    assert np.abs(as_array(smoother.estimate(), keys) - as_array(batch.estimate, keys)).max() < 1e-6
+    everything = optimize_batch(builder.factors, builder.initial_values(), robust="none")
+    moved = as_array(everything.estimate, keys) - as_array(batch.estimate, keys)
+    assert np.abs(moved).max() > 1e-4  # the three factors mattered
 
 
 def test_batch_refuses_an_unconstrained_robot() -> None:
