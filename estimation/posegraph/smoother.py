@@ -7,8 +7,9 @@ yaw)}``.
 Robust estimation (docs/design.md §5): in batch, ``"gnc_tls"`` runs graduated non-convexity with the
 truncated-least-squares loss (``gtsam.GncLMOptimizer``), with priors and odometry as known
 inliers; a mutual or global factor whose residual stays beyond the χ² quantile ``gnc_probability``
-ends with weight 0. GNC is a batch method: iSAM2 takes a Huber or Cauchy kernel, or none, and
-relies on the gates in front of the graph and the validator behind it.
+ends with weight 0; when it dropped anything, a second run holding those as inliers may win on
+truncated cost. GNC is a batch method: iSAM2 takes a Huber or Cauchy kernel, or none, relies
+on the gates in front of the graph, and can settle without factors the batch optimum dropped.
 
 iSAM2 state is checkpointed as the estimate and the number of events consumed (atomically, in
 one ``.npz``); resuming replays the consumed events through a fresh builder (cheap: no solving),
