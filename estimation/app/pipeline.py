@@ -42,12 +42,8 @@ from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
 from estimation.posegraph.keys import key_label, pose_key, split_key
-from estimation.posegraph.smoother import (
-    BatchResult,
-    IncrementalSmoother,
-    marginal_covariances,
-    optimize_batch,
-)
+from estimation.posegraph.marginals import marginal_covariances
+from estimation.posegraph.smoother import BatchResult, IncrementalSmoother, optimize_batch
 from estimation.posegraph.validate import validate_and_repair
 from estimation.search.records import SearchRecord, records_json
 from estimation.search.relocalization import relocalize

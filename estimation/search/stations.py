@@ -42,7 +42,7 @@ from estimation.chi2 import chi2_quantile
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
-from estimation.posegraph.smoother import relative_covariances
+from estimation.posegraph.marginals import relative_covariances
 from estimation.search.correlate import correlate_all
 from estimation.search.exhaustive import (
     SearchParams,

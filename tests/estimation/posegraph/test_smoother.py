@@ -16,10 +16,10 @@ from estimation.posegraph import smoother as smoother_module
 from estimation.posegraph.events import Localize, Move, Start
 from estimation.posegraph.graph import FactorSpec, GraphBuilder, GraphSettings
 from estimation.posegraph.keys import pose_key
+from estimation.posegraph.marginals import marginal_covariances
 from estimation.posegraph.smoother import (
     IncrementalSmoother,
     factor_fingerprint,
-    marginal_covariances,
     optimize_batch,
     truncated_cost,
 )
@@ -391,7 +391,7 @@ def test_huber_and_cauchy_kernels_soften_a_wrong_loop_closure(mission) -> None: 
 
 def test_relative_covariance_equals_the_composed_odometry() -> None:
     from estimation.posegraph.graph import FactorSpec
-    from estimation.posegraph.smoother import relative_covariances
+    from estimation.posegraph.marginals import relative_covariances
 
     step_a, step_b = np.array([1.0, 0.5, 0.4]), np.array([1.0, -0.2, 0.3])
     q = np.diag([0.01, 0.02, 0.003])

@@ -13,7 +13,7 @@ import pytest
 
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.smoother import RelativeCovariances, relative_covariances
+from estimation.posegraph.marginals import RelativeCovariances, relative_covariances
 from estimation.search import stations as stations_module
 from estimation.search.older_stations import (
     OLDER_MOST,

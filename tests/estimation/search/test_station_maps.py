@@ -13,7 +13,7 @@ from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
-from estimation.posegraph.smoother import relative_covariances
+from estimation.posegraph.marginals import relative_covariances
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
