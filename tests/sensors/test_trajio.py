@@ -10,6 +10,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from sensors import trajio
 from sensors.errors import TrajectoryError
 from sensors.trajio import (
     G2oGraph,
@@ -264,3 +265,41 @@ def test_as_logged_is_bitwise_what_read_tum_reads_back(tmp_path: Path) -> None:
     empty_stamps, empty_poses = as_logged(np.zeros(0), np.zeros((0, 3)), decimals=6)
     assert empty_stamps.shape == (0,)
     assert empty_poses.shape == (0, 3)
+
+
+def test_a_tum_file_read_at_once_is_what_the_line_reader_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    stamps, poses = random_planar_poses(np.random.default_rng(3), 300)
+    rows = tum_rows(stamps, poses, decimals=9)
+    # Comments, blank and indented lines, tabs and Windows line ends, as hand-edited files have.
+    text = "# t x y z qx qy qz qw\n\n" + "\r\n".join(rows[:150]) + "\n  # note\n\t\n"
+    text += "\n".join(("  " + row.replace(" ", "\t", 2)) for row in rows[150:]) + "\n"
+    path = tmp_path / "odo.tum"
+    path.write_bytes(text.encode())
+    with gzip.open(tmp_path / "odo.tum.gz", "wt") as handle:
+        handle.write(text)
+    at_once = read_tum(path)
+    monkeypatch.setattr(trajio, "_AT_ONCE_BYTES", 0)
+    for line_by_line in (read_tum(path), read_tum(tmp_path / "odo.tum.gz")):
+        np.testing.assert_array_equal(at_once[0], line_by_line[0])
+        np.testing.assert_array_equal(at_once[1], line_by_line[1])
+    assert len(at_once[0]) == 300
+    np.testing.assert_allclose(at_once[1][:, :2], poses[:, :2], atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("text", "pattern"),
+    [
+        ("1 0 0 0 0 0 0 1 # stamp\n", r"t\.tum:1: TUM line needs 8 fields .*got 10"),
+        ("1 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1_0\n", r"t\.tum:2: quaternion norm is 10, not 1"),
+        ("1 0 0 0 0 0 0 1\n" + "2 " * 40_000 + "\n", r"t\.tum:2: a line longer than 65,536"),
+    ],
+)
+def test_what_numpy_would_read_otherwise_is_read_as_the_line_reader_does(
+    tmp_path: Path, text: str, pattern: str
+) -> None:
+    path = tmp_path / "t.tum"
+    path.write_text(text)
+    with pytest.raises(TrajectoryError, match=pattern):
+        read_tum(path)

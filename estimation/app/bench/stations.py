@@ -7,7 +7,10 @@ back the same way to the first room (loop closures all along), planned on the tr
 batch``; its report's ``station_work`` gives, per station in mission order, the rays fused for
 its maps and the wall time of that fusion and of its searches. The benchmark fits the growth
 exponent of per-station work in the station index (work ∝ index^α, least squares on log–log
-over bins of stations; α near 0: flat) and reports the batch's total time per step.
+over bins of stations; α near 0: flat) and reports the batch's total time per step. The route
+closes its loops on the way back, so late stations are more often ones whose loop closure
+became a factor (about twice the work); the exponent is also fitted with an offset per kind of
+station, which measures the growth of either kind with the mission's length.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ __all__ = [
     "bench_mission",
     "format_stations_report",
     "growth_exponent",
+    "growth_exponent_by_kind",
     "run_stations_benchmark",
     "work_parts",
 ]
@@ -53,6 +57,27 @@ def growth_exponent(work: np.ndarray, bins: int = 8, index: np.ndarray | None = 
     y = np.log([np.median(work[g]) for g in groups])
     slope, _ = np.polyfit(x, y, 1)
     return float(slope)
+
+
+def growth_exponent_by_kind(work: np.ndarray, kind: np.ndarray) -> float:
+    """α of work ∝ n^α · β^kind (``kind``: a 0/1 flag per station, in mission order): the
+    least-squares slope of log(work) on log(n) with an own offset per kind, over every station
+    with work. On an out-and-back route the stations whose loop closure became a factor (about
+    twice the work) come late; :func:`growth_exponent` then measures that mix as growth, this
+    the growth of either kind of station with the mission's length."""
+    work = np.asarray(work, dtype=np.float64)
+    kind = np.asarray(kind, dtype=np.float64)
+    if kind.shape != work.shape:
+        raise ValueError(f"{len(kind)} kinds for {len(work)} stations")
+    n = np.arange(1, len(work) + 1, dtype=np.float64)
+    keep = work > 0
+    if keep.sum() < 16:
+        raise ValueError(f"need at least 16 stations with work, got {int(keep.sum())}")
+    columns = [np.log(n[keep]), np.ones(int(keep.sum()))]
+    if 0 < kind[keep].sum() < keep.sum():
+        columns.append(kind[keep])
+    fit, *_ = np.linalg.lstsq(np.column_stack(columns), np.log(work[keep]), rcond=None)
+    return float(fit[0])
 
 
 def _route(site: Any, start: np.ndarray, rng: np.random.Generator) -> list[list[float]]:
@@ -184,8 +209,13 @@ def work_parts(work: list[dict[str, Any]], searches: list[dict[str, Any]]) -> di
         return float(np.median(seconds[mask])) if mask.any() else None
 
     index = np.arange(1, len(work) + 1, dtype=np.float64)
+    try:
+        by_kind = growth_exponent_by_kind(seconds, with_closure)
+    except ValueError:
+        by_kind = None
     return {
         "part_exponents": parts,
+        "kind_exponent": by_kind,
         "closure_median_s": median(with_closure),
         "no_closure_median_s": median(~with_closure),
         "closure_exponent": _exponent_or_none(seconds[with_closure], index[with_closure]),
@@ -229,6 +259,10 @@ def format_stations_report(result: dict[str, Any], every: int = 10) -> str:
         f"{names[part]} {alpha(value)}" for part, value in result["part_exponents"].items()
     ))  # fmt: skip
 
+    lines.append(
+        "  growth exponent of either kind of station (an offset per kind, a loop closure taken "
+        f"or not): {alpha(result.get('kind_exponent'))}"
+    )
     lines.append(
         f"  per station, with a loop closure taken: median {seconds(result['closure_median_s'])}"
         f", exponent {alpha(result['closure_exponent'])}; without: median "

@@ -117,6 +117,8 @@ def test_a_cloud_over_a_huge_box_gets_larger_cells_not_a_huge_grid() -> None:
         (np.array([[0.0, np.inf, 0.0]]), 0.1, "points must be finite"),
         (np.zeros((2, 3)), 0.0, "cell size must be positive"),
         (np.zeros((2, 3)), float("nan"), "cell size must be positive"),
+        # A view of 2**31 points (no memory behind it): refused before anything is allocated.
+        (np.broadcast_to(np.zeros(3), (1 << 31, 3)), 0.1, "2,147,483,648 points, at most"),
     ],
 )
 def test_bad_clouds_are_one_line_errors(points: np.ndarray, cell: float, message: str) -> None:
