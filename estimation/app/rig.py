@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,10 +25,12 @@ from sensors.geometry.frames import scanner_mount, scanner_pose_matrix
 from sensors.lms200.driver import Lms200
 from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.scan3d.mirror import MirrorGeometry
-from sensors.sim.mission import OdometryNoise
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import RobotBody, SimulatedScanner, world_with_robots
 from sensors.sim.world import World
+
+if TYPE_CHECKING:  # the mission simulator (and its planner) is imported when a command simulates
+    from sensors.sim.mission import OdometryNoise
 
 __all__ = [
     "T_robot_scanner",
@@ -297,6 +299,8 @@ def dwell_seconds(config: Config) -> float:
 
 def odometry_noise(config: Config) -> OdometryNoise:
     """The simulated odometry's error per leg, as configured."""
+    from sensors.sim.mission import OdometryNoise
+
     sim = config.simulation
     return OdometryNoise(
         sigma_m=sim.odometry_sigma_m,

@@ -29,19 +29,21 @@ def test_quantile_at_the_ends_and_outside() -> None:
     assert chi2_quantile(0.95, 2) == pytest.approx(-2.0 * math.log(0.05), rel=1e-14)
 
 
-def test_batch_modules_do_not_import_scipy_stats() -> None:
-    """``scipy.stats`` costs ~0.6 s to import; nothing ``coopmap batch`` loads may pull it in."""
+def test_batch_modules_do_not_import_scipy_stats_nor_the_mission_simulator() -> None:
+    """``scipy.stats`` costs ~0.6 s to import, the mission simulator with its planner ~0.1 s;
+    nothing ``coopmap batch`` loads may pull them in."""
     code = (
         "import sys\n"
         "import estimation.app.cli.main, estimation.app.cli.mission\n"
         "import estimation.app.pipeline, estimation.app.results, estimation.app.figures\n"
         "import estimation.posegraph.validate, estimation.search.stations\n"
-        "print('scipy.stats' in sys.modules, 'estimation.posegraph.graph' in sys.modules)\n"
+        "print('scipy.stats' in sys.modules, 'sensors.sim.mission' in sys.modules,\n"
+        "      'estimation.posegraph.graph' in sys.modules)\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, check=True
     )
-    assert out.stdout.split() == ["False", "True"]
+    assert out.stdout.split() == ["False", "False", "True"]
 
 
 @pytest.mark.parametrize("dof", [1, 3, 6])
