@@ -62,11 +62,14 @@ def fuse_scans(
     T_frame_scanner: Sequence[np.ndarray] | np.ndarray,
     params: GridParams,
     grid: OccupancyGrid | None = None,
+    *,
+    threads: int = 1,
 ) -> OccupancyGrid:
     """Integrate every scan at its pose into ``grid`` (a new one with ``params`` if None).
 
     ``T_frame_scanner[i]`` (4, 4) maps scan i's points into the grid's frame: the map frame for
-    the global map, the reference robot's frame for a local map.
+    the global map, the reference robot's frame for a local map. ``threads``: as in
+    :meth:`OccupancyGrid.integrate_scan` (the same grid, sooner).
     """
     poses = np.asarray(T_frame_scanner, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
@@ -81,7 +84,7 @@ def fuse_scans(
         T = check_rigid(T, f"T_frame_scanner[{i}]")
         R, t = T[:3, :3], T[:3, 3]
         no_return = scan.no_return_scanner @ R.T if len(scan.no_return_scanner) else None
-        grid.integrate_scan(scan.points_scanner @ R.T + t, t, no_return)
+        grid.integrate_scan(scan.points_scanner @ R.T + t, t, no_return, threads=threads)
     return grid
 
 

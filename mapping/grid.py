@@ -13,9 +13,6 @@ origin at 0 (the default) the lattice is OctoMap's.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from mapping.errors import MapError
@@ -26,101 +23,15 @@ from mapping.kernels.blocks import (
 )
 from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks, segment_blocked
 from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
+from mapping.lanes import RAYS_PER_LANE, mark_side_by_side
 from mapping.logodds import logodds, probability
+from mapping.params import MIN_RESOLUTION_M, GridParams, open_probability
 from mapping.storage import BlockStorage, discard_scan_cube, scan_cube, stored_bounds
 
 __all__ = ["MIN_RESOLUTION_M", "GridParams", "OccupancyGrid"]
 
-#: The finest cell a grid may have: finer cells multiply memory by the cube of the ratio (a
-#: 0.5 mm grid of one room needs gigabytes) and are far below the LMS 200's range noise.
-MIN_RESOLUTION_M = 0.005
-
 #: Cell coordinates beyond this many cells from the origin cannot be addressed (block keys).
 _INITIAL_BLOCKS = 256
-
-
-def _finite_positive(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-        raise MapError(f"{name} must be a positive number, got {value!r}")
-
-
-def _open_probability(name: str, value: float) -> None:
-    if not (isinstance(value, int | float) and 0.0 < value < 1.0):
-        raise MapError(f"{name} must lie in (0, 1), got {value!r}")
-
-
-@dataclass(frozen=True)
-class GridParams:
-    """Lattice and sensor model of a grid. Field names and defaults are those of the ``grid``
-    section of the configuration (OctoMap's defaults), so ``GridParams(**config.grid.model_dump())``
-    builds one; ``origin_m`` (the corner of cell (0, 0, 0), map frame) is 0 there.
-    """
-
-    resolution_m: float = 0.1
-    prob_hit: float = 0.7
-    prob_miss: float = 0.4
-    clamp_min: float = 0.1192
-    clamp_max: float = 0.971
-    occupied_threshold: float = 0.5
-    no_return_free_m: float = 4.0
-    block_size_cells: int = 16
-    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def __post_init__(self) -> None:
-        _finite_positive("resolution_m", self.resolution_m)
-        if self.resolution_m < MIN_RESOLUTION_M:
-            raise MapError(
-                f"resolution_m must be at least {MIN_RESOLUTION_M} m, got {self.resolution_m!r}"
-            )
-        for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max", "occupied_threshold"):
-            _open_probability(name, getattr(self, name))
-        if not self.prob_miss < 0.5 < self.prob_hit:
-            raise MapError(
-                f"need prob_miss < 0.5 < prob_hit, got {self.prob_miss} and {self.prob_hit}"
-            )
-        if not self.clamp_min < self.occupied_threshold < self.clamp_max:
-            raise MapError(
-                "need clamp_min < occupied_threshold < clamp_max, got "
-                f"{self.clamp_min}, {self.occupied_threshold}, {self.clamp_max}"
-            )
-        if not (math.isfinite(self.no_return_free_m) and self.no_return_free_m >= 0):
-            raise MapError(f"no_return_free_m must be ≥ 0, got {self.no_return_free_m!r}")
-        if not (isinstance(self.block_size_cells, int) and 2 <= self.block_size_cells <= 256):
-            raise MapError(
-                f"block_size_cells must be an integer in [2, 256], got {self.block_size_cells!r}"
-            )
-        origin = tuple(float(v) for v in self.origin_m)
-        if len(origin) != 3 or not all(math.isfinite(v) for v in origin):
-            raise MapError(f"origin_m must be three finite numbers, got {self.origin_m!r}")
-        object.__setattr__(self, "origin_m", origin)
-
-    @property
-    def logodds_hit(self) -> float:
-        return float(logodds(self.prob_hit))
-
-    @property
-    def logodds_miss(self) -> float:
-        return float(logodds(self.prob_miss))
-
-    @property
-    def logodds_min(self) -> float:
-        return float(logodds(self.clamp_min))
-
-    @property
-    def logodds_max(self) -> float:
-        return float(logodds(self.clamp_max))
-
-    @property
-    def logodds_threshold(self) -> float:
-        return float(logodds(self.occupied_threshold))
-
-    def same_lattice(self, other: GridParams) -> bool:
-        """Whether two grids share resolution, origin and block size (and can be merged)."""
-        return (
-            self.resolution_m == other.resolution_m
-            and self.origin_m == other.origin_m
-            and self.block_size_cells == other.block_size_cells
-        )
 
 
 class OccupancyGrid:
@@ -199,6 +110,8 @@ class OccupancyGrid:
         points: np.ndarray,
         sensor_origin: np.ndarray,
         no_return_directions: np.ndarray | None = None,
+        *,
+        threads: int = 1,
     ) -> None:
         """Fuse one scan: free evidence along every ray, occupied evidence at its end point.
 
@@ -208,6 +121,12 @@ class OccupancyGrid:
         every cell is updated at most once and an end point's cell is occupied even if another
         ray passes through it, as OctoMap's ``insertPointCloud`` does. A ray's own end cell
         gets no free evidence from it; nor does the cell where a no-return beam's cut-off falls.
+
+        ``threads`` > 1: up to that many threads (at least ``RAYS_PER_LANE`` rays each) walk
+        the rays that stay in the scan's cube side by side, each marking its cells in a cube of
+        its own; the cubes are merged and the scan goes on as with one. The grid is the same
+        bit for bit (a cell is marked or not whichever thread marks it; the rays that leave the
+        cube are walked afterwards in their order).
         """
         hits = self._points(points, "points")
         sensor = self._points(np.asarray(sensor_origin, dtype=np.float64).reshape(1, 3), "sensor")
@@ -228,15 +147,37 @@ class OccupancyGrid:
             if cutoff > 0:
                 ends = sensor + directions * (cutoff / norms)[:, None]
                 free_ends = self._points(ends, "no-return cut-off points")
+        if threads < 1:
+            raise MapError(f"threads must be at least 1, got {threads}")
         self._scan_id += 1
-        params, store = self.params, self._store
-        bs = params.block_size_cells
+        bs = self.params.block_size_cells
         lg = bs.bit_length() - 1 if bs & (bs - 1) == 0 else -1
         cube = scan_cube()
-        phase, start = PHASE_HITS, 0
+        lanes = min(threads, (len(hits) + len(free_ends)) // RAYS_PER_LANE)
+        rays, phase, start = hits, PHASE_HITS, 0
+        try:
+            if lanes > 1:
+                phase, start = self._integrate(hits, hits, free_ends, sensor, cube, lg, phase,
+                                               start, until=PHASE_HITS)  # fmt: skip
+                rays, free_ends = mark_side_by_side(hits, free_ends, sensor[0], self.origin_m,
+                                                     1.0 / self.params.resolution_m, lg, cube,
+                                                     lanes)  # fmt: skip
+            self._integrate(hits, rays, free_ends, sensor, cube, lg, phase, start, PHASE_DONE)
+        except BaseException:
+            discard_scan_cube()  # it holds half a scan's bits: the next scan starts afresh
+            raise
+
+    def _integrate(
+        self, hits: np.ndarray, rays: np.ndarray, free_ends: np.ndarray, sensor: np.ndarray,
+        cube: np.ndarray, lg: int, phase: int, start: int, until: int,
+    ) -> tuple[int, int]:  # fmt: skip
+        """Run the scan's phases from ``phase`` (at ``start``) through ``until``, growing the
+        block pool whenever it runs out; the phase and index to go on from."""
+        params, store = self.params, self._store
         while True:
             phase, start = integrate(
                 hits,
+                rays,
                 free_ends,
                 sensor[0],
                 self.origin_m,
@@ -253,7 +194,7 @@ class OccupancyGrid:
                 store.block_scan,
                 store.updates,
                 store.lut,
-                bs,
+                params.block_size_cells,
                 lg,
                 self._scan_id,
                 params.logodds_hit,
@@ -262,14 +203,11 @@ class OccupancyGrid:
                 self._l_max,
                 phase,
                 start,
+                until,
             )
-            if phase == PHASE_DONE:
-                return
-            try:
-                store.grow()
-            except BaseException:
-                discard_scan_cube()  # it holds half a scan's bits: the next scan starts afresh
-                raise
+            if phase > until or phase == PHASE_DONE:
+                return phase, start
+            store.grow()
 
     def apply_evidence(self, cells: np.ndarray, evidence: np.ndarray) -> None:
         """Update (N, 3) cells with measurement probabilities ``evidence`` (N,) by eq. 3.
@@ -425,7 +363,7 @@ class OccupancyGrid:
         if threshold is None:
             level = self.params.logodds_threshold
         else:
-            _open_probability("threshold", threshold)
+            open_probability("threshold", threshold)
             level = float(logodds(threshold))
         keep = values > level
         return cells[keep], probability(values[keep])

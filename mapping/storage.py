@@ -116,8 +116,20 @@ def scan_cube() -> np.ndarray:
 
 
 def discard_scan_cube() -> None:
-    """Drop this thread's bitmap (after a scan failed half-way it holds that scan's bits)."""
+    """Drop this thread's bitmaps (after a scan failed half-way they hold that scan's bits)."""
     _SCAN_CUBE.cube = None
+    _SCAN_CUBE.lanes = []
+
+
+def lane_cubes(count: int) -> list[np.ndarray]:
+    """``count`` more bitmaps of this thread, for the threads that mark a share of its scan's
+    rays (each in its own: marks of two threads in one byte would lose bits); all zeros
+    between scans, like :func:`scan_cube`'s."""
+    lanes: list[np.ndarray] = getattr(_SCAN_CUBE, "lanes", [])
+    while len(lanes) < count:
+        lanes.append(np.zeros(CUBE_ARRAY_BYTES, dtype=np.uint8))
+    _SCAN_CUBE.lanes = lanes
+    return lanes[:count]
 
 
 def hash_table_bits(capacity: int) -> int:

@@ -250,6 +250,22 @@ def unmark(
             cube[m >> 3] &= np.uint8(~(1 << (m & 7)) & 0xFF)
 
 
+@njit(cache=True, nogil=True)
+def merge_cube(cube: np.ndarray, other: np.ndarray) -> None:
+    """Mark in ``cube`` every cell marked in ``other`` (another thread's share of the scan's
+    rays), and clear ``other``."""
+    words = cube[:CUBE_BYTES].view(np.uint64)
+    others = other[:CUBE_BYTES].view(np.uint64)
+    chunk_words = 1 << (CUBE_CHUNK_BITS - 3)
+    for c in range(CUBE_BYTES >> CUBE_CHUNK_BITS):
+        if other[CUBE_BYTES + c]:
+            for w in range(c * chunk_words, (c + 1) * chunk_words):
+                words[w] |= others[w]
+                others[w] = 0
+            cube[CUBE_BYTES + c] = 1
+            other[CUBE_BYTES + c] = 0
+
+
 @njit(cache=True)
 def reset_cube(cube: np.ndarray) -> None:
     """Clear the chunks of the bitmap that a scan wrote to, and their marks."""

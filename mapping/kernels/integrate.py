@@ -30,6 +30,21 @@ from mapping.kernels.traversal import trace_rays, visit_cells
 PHASE_HITS, PHASE_RAYS, PHASE_FREE, PHASE_APPLY, PHASE_DONE = 0, 1, 2, 3, 4
 
 
+@njit(cache=True, nogil=True)
+def scan_frame(
+    sensor: np.ndarray, grid_origin: np.ndarray, inv_res: float, lg: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The sensor in cell units (3,) and the corner cell of the scan's cube (3,)."""
+    o = np.empty(3, dtype=np.float64)
+    corner = np.empty(3, dtype=np.int64)
+    for axis in range(3):
+        o[axis] = (sensor[axis] - grid_origin[axis]) * inv_res
+        # The cube is aligned to blocks when they are powers of two (see ``cube.apply_fresh``).
+        cell = math.floor(o[axis])
+        corner[axis] = (cell >> lg << lg if lg >= 0 else cell) - CUBE_HALF
+    return o, corner
+
+
 @njit(cache=True)
 def _sort_hits(
     hits: np.ndarray,
@@ -69,6 +84,7 @@ def _sort_hits(
 @njit(cache=True, nogil=True)
 def integrate(
     hits: np.ndarray,
+    rays: np.ndarray,
     free_ends: np.ndarray,
     sensor: np.ndarray,
     grid_origin: np.ndarray,
@@ -94,11 +110,15 @@ def integrate(
     l_max: float,
     phase: int,
     start: int,
+    until: int,
 ) -> tuple[int, int]:
-    """Integrate one scan; returns (phase, index) to resume from, ``PHASE_DONE`` when done.
+    """Integrate one scan; returns (phase, index) to resume from, ``PHASE_DONE`` when done,
+    or the phase after ``until`` (with index 0) once that one is done.
 
-    ``hits`` (N, 3): end points of returns; ``free_ends`` (M, 3): where no-return beams stop
-    giving free evidence; ``sensor`` (3,): the sensor origin — all in the grid's frame.
+    ``hits`` (N, 3): end points of returns; ``rays`` (K, 3): the ends of the free rays traced
+    (``hits``, or those of them not marked yet by :func:`mark_rays`); ``free_ends`` (M, 3):
+    where no-return beams stop giving free evidence (all, or those not marked yet);
+    ``sensor`` (3,): the sensor origin — all in the grid's frame.
     ``cube`` (CUBE_ARRAY_BYTES,) uint8: the scan's bitmap around the sensor, all zeros when the
     scan starts, kept between calls of the same scan and cleared when it is done. End cells are
     updated first, so a cell that is an end point anywhere in the scan is occupied for the whole
@@ -106,13 +126,7 @@ def integrate(
     two, else −1.
     """
     pending = np.zeros((2, 4097), dtype=np.int64)
-    o = np.empty(3, dtype=np.float64)
-    corner = np.empty(3, dtype=np.int64)
-    for axis in range(3):
-        o[axis] = (sensor[axis] - grid_origin[axis]) * inv_res
-        # The cube is aligned to blocks when they are powers of two (see ``cube.apply_fresh``).
-        cell = math.floor(o[axis])
-        corner[axis] = (cell >> lg << lg if lg >= 0 else cell) - CUBE_HALF
+    o, corner = scan_frame(sensor, grid_origin, inv_res, lg)
     if phase == PHASE_HITS:
         # End cells in the cube are marked there and applied as a batch; the others go through
         # the per-block bits. A pool that runs out restarts the phase: what was applied is
@@ -169,7 +183,9 @@ def integrate(
             return PHASE_HITS, 0
         phase = PHASE_RAYS
         start = 0
-    for current, ends in ((PHASE_RAYS, hits), (PHASE_FREE, free_ends)):
+        if until == PHASE_HITS:
+            return phase, start
+    for current, ends in ((PHASE_RAYS, rays), (PHASE_FREE, free_ends)):
         if phase != current:
             continue
         stop = trace_rays(

@@ -174,7 +174,6 @@ def trace_rays(
     the cube step through its Morton-ordered bitmap and only mark their cells there (a few bit
     operations a step, no lookup); ``apply_marked`` updates them once every ray is done.
     """
-    inf = math.inf
     ox, oy, oz = o[0], o[1], o[2]
     ix0 = math.floor(ox)
     iy0 = math.floor(oy)
@@ -226,50 +225,100 @@ def trace_rays(
             if done < n_out:
                 return n
             continue
-        sx = 1 if jx > ix0 else -1
-        sy = 1 if jy > iy0 else -1
-        sz = 1 if jz > iz0 else -1
-        # Dilated-integer increments: +1 is the axis's lowest bit, −1 all of its bits.
-        incx = 4 if sx > 0 else MX
-        incy = 2 if sy > 0 else MY
-        incz = 1 if sz > 0 else MZ
-        tmx = inf
-        tmy = inf
-        tmz = inf
-        tdx = 0.0
-        tdy = 0.0
-        tdz = 0.0
-        if nx > 0:
-            tdx = 1.0 / abs(ex - ox)
-            tmx = ((ix0 + 1 if sx > 0 else ix0) - ox) / (ex - ox)
-        if ny > 0:
-            tdy = 1.0 / abs(ey - oy)
-            tmy = ((iy0 + 1 if sy > 0 else iy0) - oy) / (ey - oy)
-        if nz > 0:
-            tdz = 1.0 / abs(ez - oz)
-            tmz = ((iz0 + 1 if sz > 0 else iz0) - oz) / (ez - oz)
-        m = m0
-        _mark(cube, m)
-        for _ in range(total - 1):
-            if tmx < tmy:
-                if tmx < tmz:
-                    nx -= 1
-                    tmx = tmx + tdx if nx > 0 else inf
-                    m = (((m | ~MX) + incx) & MX) | (m & ~MX)
-                else:
-                    nz -= 1
-                    tmz = tmz + tdz if nz > 0 else inf
-                    m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
-            elif tmy < tmz:
-                ny -= 1
-                tmy = tmy + tdy if ny > 0 else inf
-                m = (((m | ~MY) + incy) & MY) | (m & ~MY)
+        _walk_cube(cube, m0, ox, oy, oz, ix0, iy0, iz0, ex, ey, ez, jx, jy, jz)
+    return len(ends)
+
+
+@njit(cache=True, inline="always")
+def _walk_cube(
+    cube: np.ndarray, m0: int, ox: float, oy: float, oz: float, ix0: int, iy0: int, iz0: int,
+    ex: float, ey: float, ez: float, jx: int, jy: int, jz: int,
+) -> None:  # fmt: skip
+    """Mark the cells of the ray from ``o`` (cell units; its cell (ix0, iy0, iz0), Morton
+    ``m0`` in the cube) to ``e`` (its cell (jx, jy, jz), in the cube), the end cell excluded."""
+    inf = math.inf
+    nx = abs(jx - ix0)
+    ny = abs(jy - iy0)
+    nz = abs(jz - iz0)
+    total = nx + ny + nz
+    sx = 1 if jx > ix0 else -1
+    sy = 1 if jy > iy0 else -1
+    sz = 1 if jz > iz0 else -1
+    # Dilated-integer increments: +1 is the axis's lowest bit, −1 all of its bits.
+    incx = 4 if sx > 0 else MX
+    incy = 2 if sy > 0 else MY
+    incz = 1 if sz > 0 else MZ
+    tmx = inf
+    tmy = inf
+    tmz = inf
+    tdx = 0.0
+    tdy = 0.0
+    tdz = 0.0
+    if nx > 0:
+        tdx = 1.0 / abs(ex - ox)
+        tmx = ((ix0 + 1 if sx > 0 else ix0) - ox) / (ex - ox)
+    if ny > 0:
+        tdy = 1.0 / abs(ey - oy)
+        tmy = ((iy0 + 1 if sy > 0 else iy0) - oy) / (ey - oy)
+    if nz > 0:
+        tdz = 1.0 / abs(ez - oz)
+        tmz = ((iz0 + 1 if sz > 0 else iz0) - oz) / (ez - oz)
+    m = m0
+    _mark(cube, m)
+    for _ in range(total - 1):
+        if tmx < tmy:
+            if tmx < tmz:
+                nx -= 1
+                tmx = tmx + tdx if nx > 0 else inf
+                m = (((m | ~MX) + incx) & MX) | (m & ~MX)
             else:
                 nz -= 1
                 tmz = tmz + tdz if nz > 0 else inf
                 m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
-            _mark(cube, m)
-    return len(ends)
+        elif tmy < tmz:
+            ny -= 1
+            tmy = tmy + tdy if ny > 0 else inf
+            m = (((m | ~MY) + incy) & MY) | (m & ~MY)
+        else:
+            nz -= 1
+            tmz = tmz + tdz if nz > 0 else inf
+            m = (((m | ~MZ) + incz) & MZ) | (m & ~MZ)
+        _mark(cube, m)
+
+
+@njit(cache=True, nogil=True)
+def mark_rays(
+    ends: np.ndarray, o: np.ndarray, corner: np.ndarray, grid_origin: np.ndarray,
+    inv_res: float, cube: np.ndarray, left: np.ndarray,
+) -> int:  # fmt: skip
+    """:func:`trace_rays`'s marks of the rays to ``ends`` that end in the cube, made in
+    ``cube`` alone (nothing else is touched: several threads mark their share of a scan's rays
+    at once, each in its own cube); the indices of the rays that end outside the cube, for
+    :func:`trace_rays`, in ``left`` (returned count)."""
+    ox, oy, oz = o[0], o[1], o[2]
+    ix0 = math.floor(ox)
+    iy0 = math.floor(oy)
+    iz0 = math.floor(oz)
+    m0 = morton(ix0 - corner[0], iy0 - corner[1], iz0 - corner[2])
+    n_left = 0
+    for n in range(len(ends)):
+        ex = (ends[n, 0] - grid_origin[0]) * inv_res
+        ey = (ends[n, 1] - grid_origin[1]) * inv_res
+        ez = (ends[n, 2] - grid_origin[2]) * inv_res
+        jx = math.floor(ex)
+        jy = math.floor(ey)
+        jz = math.floor(ez)
+        if jx == ix0 and jy == iy0 and jz == iz0:
+            continue
+        cx = jx - corner[0]
+        cy = jy - corner[1]
+        cz = jz - corner[2]
+        if not (0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE):
+            left[n_left] = n
+            n_left += 1
+            continue
+        _walk_cube(cube, m0, ox, oy, oz, ix0, iy0, iz0, ex, ey, ez, jx, jy, jz)
+    return n_left
 
 
 @njit(cache=True, inline="always")

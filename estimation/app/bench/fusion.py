@@ -162,6 +162,7 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
     OccupancyGrid(params).integrate_scan(case.points[:10], case.origin)  # load compiled kernels
     points = np.ascontiguousarray(case.points, dtype=np.float64)
     ours: list[float] = []
+    threaded: list[float] = []  # the same scan with the rays walked on two threads
     peer: list[float] = []
     grid = OccupancyGrid(params)
     tree: Any = None
@@ -172,6 +173,10 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
         start = time.perf_counter()
         grid.integrate_scan(points, case.origin)
         ours.append(time.perf_counter() - start)
+        other = OccupancyGrid(params)
+        start = time.perf_counter()
+        other.integrate_scan(points, case.origin, threads=2)
+        threaded.append(time.perf_counter() - start)
         tree = pyoctomap.OcTree(params.resolution_m)
         tree.setProbHit(params.prob_hit)
         tree.setProbMiss(params.prob_miss)
@@ -192,6 +197,8 @@ def measure_case(case: FusionCase, params: GridParams, repeats: int) -> dict[str
         "points": n,
         "ratio": min(peer) / min(ours),
         "rays_per_s": n / min(ours),
+        "ratio_two_threads": min(peer) / min(threaded),
+        "rays_per_s_two_threads": n / min(threaded),
         "peer_rays_per_s": n / min(peer),
         "agreement": agreement,
         "cells_compared": compared,
@@ -368,7 +375,9 @@ def format_fusion_report(result: dict[str, Any]) -> str:
             f"coopmap {case['rays_per_s'] / 1e6:.2f} M rays/s "
             f"({case['seconds'] * 1e3:.1f} ms), "
             f"OctoMap {case['peer_rays_per_s'] / 1e6:.3f} M rays/s "
-            f"({case['peer_seconds'] * 1e3:.0f} ms): {case['ratio']:.1f}×; agreement "
+            f"({case['peer_seconds'] * 1e3:.0f} ms): {case['ratio']:.1f}×; on two threads "
+            f"{case['rays_per_s_two_threads'] / 1e6:.2f} M rays/s, "
+            f"{case['ratio_two_threads']:.1f}×; agreement "
             f"{100 * case['agreement']:.3f} % of {case['cells_compared']:,} cells known to both\n"
             f"      memory per known cell: coopmap {case['bytes_per_known_cell']:.1f} B "
             f"({case['memory_bytes'] / 1e6:.1f} MB / {case['known_cells']:,}), OctoMap "

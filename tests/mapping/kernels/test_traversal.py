@@ -221,3 +221,89 @@ def test_random_scans_match_the_reference_in_and_beyond_the_cube(
     occupied, free = reference_fusion(points, sensor, resolution, ends if free_m > 0 else ())
     assert fused_sets(grid) == (occupied, free)
     assert grid.cell_updates == len(occupied) + len(free)
+
+
+def _scan_with_far_rays(seed: int, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A sensor, ``count`` returns around it (some beyond a fine grid's cube) and no-return
+    directions."""
+    rng = np.random.default_rng(seed)
+    sensor = rng.uniform(-1, 1, 3)
+    points = sensor + rng.normal(0, 2.0, (count, 3))
+    points[::97] *= 4.0  # far beyond the cube at 0.01 m (±2.56 m)
+    return sensor, points, rng.normal(size=(count // 4, 3))
+
+
+def _pool(grid: OccupancyGrid) -> tuple[np.ndarray, ...]:
+    store = grid._store
+    used = int(store.count[0])
+    return store.coords[:used], store.logodds[:used], store.known[:used]
+
+
+@pytest.mark.parametrize(("resolution", "block", "threads"),
+                         [(0.01, 8, 2), (0.05, 3, 3), (0.2, 16, 2)])  # fmt: skip
+def test_rays_walked_side_by_side_give_the_same_grid_bit_for_bit(
+    resolution: float, block: int, threads: int
+) -> None:
+    from mapping.storage import lane_cubes, scan_cube
+
+    params = GridParams(resolution_m=resolution, block_size_cells=block, no_return_free_m=3.0)
+    alone = OccupancyGrid(params, capacity_blocks=1)  # grows in every phase, many times
+    together = OccupancyGrid(params, capacity_blocks=1)
+    for seed in range(3):
+        sensor, points, directions = _scan_with_far_rays(seed, 13_000)
+        alone.integrate_scan(points, sensor, directions)
+        together.integrate_scan(points, sensor, directions, threads=threads)
+    for ours, theirs in zip(_pool(together), _pool(alone), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    assert together.cell_updates == alone.cell_updates > 100_000
+    # Every bitmap is clear again for the next scan.
+    assert not scan_cube().any()
+    assert not any(cube.any() for cube in lane_cubes(threads - 1))
+
+
+def test_a_thread_that_fails_leaves_no_marks_for_the_next_scan(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import threading
+
+    import mapping.lanes as lanes_module
+
+    sensor, points, directions = _scan_with_far_rays(5, 12_000)
+    params = GridParams(resolution_m=0.05, no_return_free_m=3.0)
+    next_scan = _scan_with_far_rays(6, 12_000)  # elsewhere: stale marks would show in it
+    reference = OccupancyGrid(params)
+    reference.integrate_scan(next_scan[1], next_scan[0], next_scan[2])
+    real = lanes_module.mark_rays
+
+    def fails_on_a_helper(*args: object) -> int:
+        result = real(*args)  # its marks are made, then it fails
+        if threading.current_thread() is not threading.main_thread():
+            raise RuntimeError("helper failed")
+        return result
+
+    grid = OccupancyGrid(params)
+    monkeypatch.setattr(lanes_module, "mark_rays", fails_on_a_helper)
+    with pytest.raises(RuntimeError, match="helper failed"):
+        grid.integrate_scan(points, sensor, directions, threads=2)
+    monkeypatch.setattr(lanes_module, "mark_rays", real)
+    again = OccupancyGrid(params)
+    again.integrate_scan(next_scan[1], next_scan[0], next_scan[2], threads=2)
+    for ours, theirs in zip(_pool(again), _pool(reference), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+
+
+def test_a_small_scan_is_walked_on_one_thread_and_threads_below_one_are_refused(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import mapping.grid as grid_module
+
+    def never(*args: object) -> None:
+        raise AssertionError("a scan of fewer than 2 × 4,096 rays was shared out")
+
+    monkeypatch.setattr(grid_module, "mark_side_by_side", never)
+    sensor, points, directions = _scan_with_far_rays(1, 6_000)
+    grid = OccupancyGrid(GridParams(resolution_m=0.1))
+    grid.integrate_scan(points, sensor, directions, threads=4)
+    assert grid.cell_updates > 1_000
+    with pytest.raises(MapError, match="threads must be at least 1, got 0"):
+        grid.integrate_scan(points, sensor, threads=0)

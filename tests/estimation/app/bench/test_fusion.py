@@ -59,6 +59,10 @@ def test_a_case_measures_both_tools_on_the_same_scan() -> None:
     assert result["rays_per_s"] == pytest.approx(3000 / result["seconds"])
     assert result["peer_rays_per_s"] == pytest.approx(3000 / result["peer_seconds"])
     assert result["ratio"] == pytest.approx(result["peer_seconds"] / result["seconds"])
+    # Two threads: timed too (a scan this small is walked on one; the grid is the same).
+    assert result["ratio_two_threads"] == pytest.approx(
+        result["ratio"] * result["rays_per_s_two_threads"] / result["rays_per_s"]
+    )
     assert result["agreement"] >= 0.99
     assert result["cells_compared"] > 0.95 * result["cell_updates"]
     assert result["repeats"] >= 2
