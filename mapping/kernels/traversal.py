@@ -230,6 +230,17 @@ def trace_rays(
 
 
 @njit(cache=True, inline="always")
+def _axis_steps(o: float, e: float, i0: int, j: int) -> tuple[int, float, float]:
+    """Along one axis, for a ray from ``o`` (in cell ``i0``) to ``e`` (in cell ``j``): the step
+    (±1), the ray parameter t of its first cell face, and t per cell (∞ and 0 when the ray stays
+    in the axis's cell)."""
+    s = 1 if j > i0 else -1
+    if j == i0:
+        return s, math.inf, 0.0
+    return s, ((i0 + 1 if s > 0 else i0) - o) / (e - o), 1.0 / abs(e - o)
+
+
+@njit(cache=True, inline="always")
 def _walk_cube(
     cube: np.ndarray, m0: int, ox: float, oy: float, oz: float, ix0: int, iy0: int, iz0: int,
     ex: float, ey: float, ez: float, jx: int, jy: int, jz: int,
@@ -241,28 +252,13 @@ def _walk_cube(
     ny = abs(jy - iy0)
     nz = abs(jz - iz0)
     total = nx + ny + nz
-    sx = 1 if jx > ix0 else -1
-    sy = 1 if jy > iy0 else -1
-    sz = 1 if jz > iz0 else -1
+    sx, tmx, tdx = _axis_steps(ox, ex, ix0, jx)
+    sy, tmy, tdy = _axis_steps(oy, ey, iy0, jy)
+    sz, tmz, tdz = _axis_steps(oz, ez, iz0, jz)
     # Dilated-integer increments: +1 is the axis's lowest bit, −1 all of its bits.
     incx = 4 if sx > 0 else MX
     incy = 2 if sy > 0 else MY
     incz = 1 if sz > 0 else MZ
-    tmx = inf
-    tmy = inf
-    tmz = inf
-    tdx = 0.0
-    tdy = 0.0
-    tdz = 0.0
-    if nx > 0:
-        tdx = 1.0 / abs(ex - ox)
-        tmx = ((ix0 + 1 if sx > 0 else ix0) - ox) / (ex - ox)
-    if ny > 0:
-        tdy = 1.0 / abs(ey - oy)
-        tmy = ((iy0 + 1 if sy > 0 else iy0) - oy) / (ey - oy)
-    if nz > 0:
-        tdz = 1.0 / abs(ez - oz)
-        tmz = ((iz0 + 1 if sz > 0 else iz0) - oz) / (ez - oz)
     m = m0
     _mark(cube, m)
     for _ in range(total - 1):
@@ -357,24 +353,9 @@ def _split_ray(
     ny = abs(jy - iy)
     nz = abs(jz - iz)
     total = nx + ny + nz
-    sx = 1 if jx > ix else -1
-    sy = 1 if jy > iy else -1
-    sz = 1 if jz > iz else -1
-    tmx = inf
-    tmy = inf
-    tmz = inf
-    tdx = 0.0
-    tdy = 0.0
-    tdz = 0.0
-    if nx > 0:
-        tdx = 1.0 / abs(ex - ox)
-        tmx = ((ix + 1 if sx > 0 else ix) - ox) / (ex - ox)
-    if ny > 0:
-        tdy = 1.0 / abs(ey - oy)
-        tmy = ((iy + 1 if sy > 0 else iy) - oy) / (ey - oy)
-    if nz > 0:
-        tdz = 1.0 / abs(ez - oz)
-        tmz = ((iz + 1 if sz > 0 else iz) - oz) / (ez - oz)
+    sx, tmx, tdx = _axis_steps(ox, ex, ix, jx)
+    sy, tmy, tdy = _axis_steps(oy, ey, iy, jy)
+    sz, tmz, tdz = _axis_steps(oz, ez, iz, jz)
     n_out = 0
     inside = True
     for s in range(total):
