@@ -54,10 +54,15 @@ def test_start_up_and_streaming(emulator: Lms200Emulator) -> None:
     scans = list(driver.scans(limit=13))
     assert len(scans) == 13
     stamps = np.array([s.stamp_s for s in scans])
-    rate = (len(scans) - 1) / (stamps[-1] - stamps[0])
-    assert rate == pytest.approx(12.5, rel=0.08)  # 38 400 Bd, 101 values: one scan every 6 turns
     indices = np.array([s.scan_index for s in scans])
-    assert set(np.diff(indices) % 256) == {6}
+    # 38 400 Bd, 101 values: one scan every 6 turns. Like the sensor, the emulator drops a scan
+    # that falls due while the line still sends the one before (§8): on a loaded machine its
+    # thread can run late by that much, once in a while.
+    gaps = np.diff(indices) % 256
+    assert set(gaps) <= {6, 12}
+    assert np.count_nonzero(gaps == 6) >= len(gaps) - 2
+    rate = (gaps.sum() / 6) / (stamps[-1] - stamps[0])  # scans due per second
+    assert rate == pytest.approx(12.5, rel=0.08)
     first = scans[0]
     np.testing.assert_allclose(
         first.ranges_m[:5] - first.ranges_m[0], [0.0, 0.01, 0.02, 0.03, 0.04], atol=1e-9
