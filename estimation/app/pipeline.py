@@ -227,7 +227,6 @@ def _finish(
         [MapScan(s.points_scanner) for s in used],
         transforms,
         GridParams(**config.grid.model_dump()),
-        threads=station_params(config).station_search.thread_count(),  # nothing else runs now
     )
     timings = dataclasses.replace(timings, fusion=time.perf_counter() - clock)
     stamps = read_pose_stamps(dataset)
