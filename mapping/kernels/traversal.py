@@ -181,22 +181,11 @@ def trace_rays(
     m0 = morton(ix0 - corner[0], iy0 - corner[1], iz0 - corner[2])
     outside = np.empty((4096, 3), dtype=np.int64)
     for n in range(start, len(ends)):
-        ex = (ends[n, 0] - grid_origin[0]) * inv_res
-        ey = (ends[n, 1] - grid_origin[1]) * inv_res
-        ez = (ends[n, 2] - grid_origin[2]) * inv_res
-        jx = math.floor(ex)
-        jy = math.floor(ey)
-        jz = math.floor(ez)
-        nx = abs(jx - ix0)
-        ny = abs(jy - iy0)
-        nz = abs(jz - iz0)
-        total = nx + ny + nz
+        ex, ey, ez, jx, jy, jz, inside = _end_cell(ends, n, grid_origin, inv_res, corner)
+        total = abs(jx - ix0) + abs(jy - iy0) + abs(jz - iz0)
         if total == 0:
             continue
-        cx = jx - corner[0]
-        cy = jy - corner[1]
-        cz = jz - corner[2]
-        if not (0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE):
+        if not inside:
             if total > len(outside):
                 outside = np.empty((total, 3), dtype=np.int64)
             n_out = _split_ray(o, ex, ey, ez, corner, cube, outside)
@@ -227,6 +216,24 @@ def trace_rays(
             continue
         _walk_cube(cube, m0, ox, oy, oz, ix0, iy0, iz0, ex, ey, ez, jx, jy, jz)
     return len(ends)
+
+
+@njit(cache=True, inline="always")
+def _end_cell(
+    ends: np.ndarray, n: int, grid_origin: np.ndarray, inv_res: float, corner: np.ndarray
+) -> tuple[float, float, float, int, int, int, bool]:
+    """Ray ``n``'s end in cell units, its cell, and whether that cell lies in the cube."""
+    ex = (ends[n, 0] - grid_origin[0]) * inv_res
+    ey = (ends[n, 1] - grid_origin[1]) * inv_res
+    ez = (ends[n, 2] - grid_origin[2]) * inv_res
+    jx = math.floor(ex)
+    jy = math.floor(ey)
+    jz = math.floor(ez)
+    cx = jx - corner[0]
+    cy = jy - corner[1]
+    cz = jz - corner[2]
+    inside = 0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE
+    return ex, ey, ez, jx, jy, jz, inside
 
 
 @njit(cache=True, inline="always")
@@ -298,18 +305,10 @@ def mark_rays(
     m0 = morton(ix0 - corner[0], iy0 - corner[1], iz0 - corner[2])
     n_left = 0
     for n in range(len(ends)):
-        ex = (ends[n, 0] - grid_origin[0]) * inv_res
-        ey = (ends[n, 1] - grid_origin[1]) * inv_res
-        ez = (ends[n, 2] - grid_origin[2]) * inv_res
-        jx = math.floor(ex)
-        jy = math.floor(ey)
-        jz = math.floor(ez)
+        ex, ey, ez, jx, jy, jz, inside = _end_cell(ends, n, grid_origin, inv_res, corner)
         if jx == ix0 and jy == iy0 and jz == iz0:
             continue
-        cx = jx - corner[0]
-        cy = jy - corner[1]
-        cz = jz - corner[2]
-        if not (0 <= cx < CUBE_SIDE and 0 <= cy < CUBE_SIDE and 0 <= cz < CUBE_SIDE):
+        if not inside:
             left[n_left] = n
             n_left += 1
             continue
@@ -416,24 +415,9 @@ def ray_cells(start: np.ndarray, end: np.ndarray, include_end: bool) -> np.ndarr
     out[0, 1] = iy
     out[0, 2] = iz
     inf = math.inf
-    sx = 1 if jx > ix else -1
-    sy = 1 if jy > iy else -1
-    sz = 1 if jz > iz else -1
-    tmx = inf
-    tmy = inf
-    tmz = inf
-    tdx = 0.0
-    tdy = 0.0
-    tdz = 0.0
-    if nx > 0:
-        tdx = 1.0 / abs(end[0] - start[0])
-        tmx = ((ix + 1 if sx > 0 else ix) - start[0]) / (end[0] - start[0])
-    if ny > 0:
-        tdy = 1.0 / abs(end[1] - start[1])
-        tmy = ((iy + 1 if sy > 0 else iy) - start[1]) / (end[1] - start[1])
-    if nz > 0:
-        tdz = 1.0 / abs(end[2] - start[2])
-        tmz = ((iz + 1 if sz > 0 else iz) - start[2]) / (end[2] - start[2])
+    sx, tmx, tdx = _axis_steps(start[0], end[0], ix, jx)
+    sy, tmy, tdy = _axis_steps(start[1], end[1], iy, jy)
+    sz, tmz, tdz = _axis_steps(start[2], end[2], iz, jz)
     for s in range(1, total + 1):
         # Ties: z before y before x (OctoMap's comparisons).
         axis = (0 if tmx < tmz else 2) if tmx < tmy else (1 if tmy < tmz else 2)
