@@ -293,6 +293,10 @@ class _OlderMap:
     banded: int = -1  # how many views the band was cut from
 
 
+#: What one closure's older-stations band took: the band, the rays cast, the seconds.
+_OlderMade = tuple[Band | None, int, float]
+
+
 @dataclass
 class StationMaps:
     """The station maps of a mission, built once and updated as the estimate moves (see the
@@ -463,14 +467,70 @@ class StationMaps:
         """The ceiling band of the ``older`` stations' views fused in ``anchor``'s frame (for
         ``station``'s loop closure): the anchor's grid so far, with the new views appended when
         those fused before are the first of the ones wanted and have not moved."""
+        return self.older_bands([(station, anchor, older)], estimate, ties)[0]
+
+    def older_bands(
+        self,
+        closures: Sequence[tuple[Station, Station, Sequence[Station]]],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+        workers: int = 1,
+    ) -> list[Band | None]:
+        """:meth:`older_band` of each (station, anchor, older stations), in order. The closures
+        of one anchor are fused in their order, each appending to the grid the one before left;
+        those of different anchors touch different grids and run side by side on up to
+        ``workers`` threads. Every band is the one fusing its views at once gives, so the
+        answers do not depend on the threads; a grid is never dropped while its anchor's
+        closures run (only afterwards, the least recently used beyond ``_OLDER_GRIDS``)."""
+        by_anchor: dict[int, list[int]] = {}
+        for n, (_, anchor, _) in enumerate(closures):
+            by_anchor.setdefault(anchor.key, []).append(n)
+        held = {key: self._older.pop(key, None) for key in by_anchor}
+
+        def fuse(numbers: list[int]) -> tuple[_OlderMap | None, list[_OlderMade]]:
+            kept = held[closures[numbers[0]][1].key]
+            made: list[_OlderMade] = []
+            for n in numbers:
+                _, anchor, older = closures[n]
+                kept, band, rays, seconds = self._older_step(kept, anchor, older, estimate, ties)
+                made.append((band, rays, seconds))
+            return kept, made
+
+        fused = side_by_side(fuse, list(by_anchor.values()), workers)
+        bands: list[Band | None] = [None] * len(closures)
+        for (key, numbers), (kept, made) in zip(by_anchor.items(), fused, strict=True):
+            for n, (band, rays, seconds) in zip(numbers, made, strict=True):
+                bands[n] = band
+                work = self._work(closures[n][0].key)
+                work.older_rays += rays
+                work.older_seconds += seconds
+            held[key] = kept
+        for key in sorted(by_anchor, key=lambda k: by_anchor[k][-1]):  # as last used
+            if (kept := held[key]) is not None:
+                self._older[key] = kept
+        while len(self._older) > _OLDER_GRIDS:
+            self._older.popitem(last=False)
+        return bands
+
+    def _older_step(
+        self,
+        kept: _OlderMap | None,
+        anchor: Station,
+        older: Sequence[Station],
+        estimate: dict[int, np.ndarray],
+        ties: dict[int, set[int]],
+    ) -> tuple[_OlderMap | None, Band | None, int, float]:
+        """One closure's older-stations band from the anchor's grid ``kept`` (appended to, or
+        rebuilt when its views are not the first of those wanted or moved): the grid now, the
+        band, the rays cast and the seconds taken. Touches nothing shared but the views'
+        reaches (any thread)."""
         views = [v for s in older for v in tied_views(s, ties) if v.key in estimate]
         if not views:
-            return None
+            return kept, None, 0, 0.0
         frame = estimate[anchor.key]
         relative = _relative(frame, views, estimate)
         keys = [v.key for v in views]
         started = time.perf_counter()
-        kept = self._older.get(anchor.key)
         fused = 0 if kept is None else len(kept.views)
         if (
             kept is None
@@ -487,14 +547,8 @@ class StationMaps:
         if kept.banded != len(kept.views):
             kept.band = band_of_grid(kept.grid, self.params, "ceiling")
             kept.banded = len(kept.views)
-        self._older[anchor.key] = kept
-        self._older.move_to_end(anchor.key)
-        while len(self._older) > _OLDER_GRIDS:
-            self._older.popitem(last=False)
-        work = self._work(station.key)
-        work.older_rays += sum(len(v.points_scanner) for v in new)
-        work.older_seconds += time.perf_counter() - started
-        return kept.band
+        rays = sum(len(v.points_scanner) for v in new)
+        return kept, kept.band, rays, time.perf_counter() - started
 
     def retain(self, keys: set[int]) -> None:
         """Forget the maps of every station not in ``keys`` (a long mission's worker keeps

@@ -414,9 +414,9 @@ def loop_closures(
     """Search each station against the older stations near it, in windows around the predicted
     pose that grow until the peak is dominant; a dominant peak consistent with the prediction
     becomes a ``Localize`` event. With ``only``, just those stations are searched; ``maps`` as
-    in :func:`station_links`. The stations' own maps are made side by side, the older stations'
-    maps in mission order (each is appended to), then the searches run side by side, then the
-    registrations."""
+    in :func:`station_links`. The stations' own maps are made side by side, then the older
+    stations' maps (each anchor's appended to in mission order, the anchors side by side), then
+    the searches run side by side, then the registrations."""
     search = params.station_search
     workers = search.thread_count()
     stations = [s for s in stations if s.key in estimate]
@@ -443,12 +443,17 @@ def loop_closures(
     maps.prepare([s for station, _, older, _ in near_by
                   for s in (station, *(older if len(older) > OLDER_MOST else ()))],
                  estimate, ties, workers)  # fmt: skip
+    chosen = [
+        (station, anchor, seen_alike(station, anchor, older, estimate, ties, maps), uncertainty)
+        for station, anchor, older, uncertainty in near_by
+        if maps.band(station, estimate, ties) is not None
+    ]
+    # The older stations' maps: each anchor's appended to in mission order, anchors side by side.
+    older_bands = maps.older_bands([c[:3] for c in chosen], estimate, ties, workers)
     closures = []
-    for station, anchor, older, uncertainty in near_by:
-        older = seen_alike(station, anchor, older, estimate, ties, maps)
+    for (station, anchor, older, uncertainty), global_ in zip(chosen, older_bands, strict=True):
         sigma_m, sigma_rad = pose_sigmas(uncertainty)
         local = maps.band(station, estimate, ties)
-        global_ = maps.older_band(station, anchor, older, estimate, ties)
         if local is None or global_ is None:
             continue
         closures.append(_Closure(

@@ -162,6 +162,37 @@ def test_the_older_stations_map_is_appended_to_and_equals_the_map_fused_at_once(
     assert same_band(other, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
 
 
+def test_older_maps_of_several_anchors_fused_side_by_side_equal_those_fused_at_once(
+    mission,
+) -> None:
+    """Each anchor's closures append to its grid in their order, the anchors side by side:
+    every band is the one fusing its views at once gives, the rays counted are those cast."""
+    stations, factors = mission
+    ties = mutual_ties(factors)
+    s = stations
+    closures = [(s[2], s[0], s[:1]), (s[3], s[1], s[:2]), (s[3], s[0], s[:3]), (s[3], s[1], s[1:3])]
+    maps = StationMaps(EXACT)
+    bands = maps.older_bands(closures, TRUTH, ties, workers=2)
+    for band, (_, anchor, older) in zip(bands, closures, strict=True):
+        views = [v for o in older for v in tied_views(o, ties)]
+        assert same_band(band, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
+    one_by_one = StationMaps(EXACT)
+    for band, closure in zip(bands, closures, strict=True):
+        assert same_band(band, one_by_one.older_band(*closure, TRUTH, ties))
+    # s0's grid: s0's views, then s1's and s2's appended; s1's: s0 and s1, rebuilt for s1, s2.
+    rays = {st.key: sum(len(v.points_scanner) for v in tied_views(st, ties)) for st in s}
+    assert maps.work[s[2].key].older_rays == rays[s[0].key]
+    assert maps.work[s[3].key].older_rays == (
+        rays[s[0].key] + rays[s[1].key]  # s1's first
+        + rays[s[1].key] + rays[s[2].key]  # s0's appended
+        + rays[s[1].key] + rays[s[2].key]  # s1's rebuilt
+    )  # fmt: skip
+    assert list(maps._older) == [s[0].key, s[1].key]  # kept, the last used last
+    assert maps.older_bands([], TRUTH, ties, workers=2) == []
+    # A closure whose older stations have no view with a pose has no band.
+    assert maps.older_bands([(s[3], s[0], s[:1])], {}, ties) == [None]
+
+
 def test_a_link_is_registered_on_the_stations_points_and_carries_their_covariance(
     mission,
 ) -> None:
