@@ -500,8 +500,8 @@ class _Near:
             turn = abs(math.remainder(float(pose[2] - at[2]), 2 * math.pi))
             if math.hypot(pose[0] - at[0], pose[1] - at[1]) + turn * radius <= _OVERLAP_MARGIN_M:
                 return rows
-        nearest = self.grid.query(_moved(source.points, pose), 1, self.reach_m + _OVERLAP_MARGIN_M)
-        rows = np.flatnonzero(nearest[:, 0] < len(self.grid))
+        near = self.grid.any_within(_moved(source.points, pose), self.reach_m + _OVERLAP_MARGIN_M)
+        rows = np.flatnonzero(near)
         self._checked[id(source)] = (source, source.reach_m(), np.array(pose, dtype=float), rows)
         return rows
 

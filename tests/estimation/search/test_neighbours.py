@@ -46,6 +46,47 @@ def test_the_answer_is_the_k_d_trees(seed: int, n: int, k: int, reach: float, ce
     assert ((index == n) == (expected == n)).all()
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 300),
+    reach=st.floats(0.01, 2.0),
+    cell=st.floats(0.03, 0.6),
+)
+def test_any_within_says_whether_the_tree_finds_a_point(
+    seed: int, n: int, reach: float, cell: float
+) -> None:
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-2.0, 2.0, (n, 3)) * rng.uniform(0.01, 3.0, 3)
+    queries = rng.uniform(-3.0, 3.0, (40, 3))
+    near = PointGrid(points, cell_m=cell).any_within(queries, reach)
+    assert near.shape == (40,)
+    assert near.dtype == bool
+    assert (near == (_tree(points, queries, 1, reach)[:, 0] < n)).all()
+
+
+def test_any_within_on_a_surface_empty_and_at_the_reach() -> None:
+    """A wall queried 30 cm in front along its length at the registration's overlap reach
+    (45 cm: within it up to 33.5 cm beyond either end), a point exactly at the reach (within,
+    as the k-d tree counts), and nothing to find."""
+    u = np.arange(0.0, 80.0) * 0.05
+    a, b = np.meshgrid(u, u[:50])
+    wall = np.c_[a.ravel(), np.zeros(a.size), b.ravel()]
+    xs = np.linspace(-1.0, 5.0, 61)
+    queries = np.c_[xs, np.full(61, 0.3), np.full(61, 1.0)]
+    near = PointGrid(wall).any_within(queries, 0.45)
+    reach_x = np.sqrt(0.45**2 - 0.3**2)
+    assert (near == ((xs > -reach_x) & (xs < u[-1] + reach_x))).all()
+    one = PointGrid(np.array([[0.0, 0.0, 0.0]]))
+    assert one.any_within(np.array([[0.0, 0.5, 0.0], [0.0, 0.5000001, 0.0]]), 0.5).tolist() == [
+        True,
+        False,
+    ]
+    assert PointGrid(np.zeros((0, 3))).any_within(queries, 1.0).tolist() == [False] * 61
+    assert PointGrid(wall).any_within(np.zeros((0, 3)), 1.0).shape == (0,)
+    assert not PointGrid(wall).any_within(queries, -1.0).any()
+
+
 def test_a_surface_cloud_matches_the_tree_at_the_registrations_reaches() -> None:
     """A box of walls at the registration's 5 cm voxels, queried 3.6 cm off (a registration
     near convergence) with k = 1, 8 and 20 at 10 and 30 cm."""
