@@ -138,12 +138,17 @@ def as_logged(
     return values[:, 0].copy(), _planar(values)
 
 
-def pose_at(stamps_s: np.ndarray, poses: np.ndarray, t_s: float) -> np.ndarray:
+def pose_at(
+    stamps_s: np.ndarray, poses: np.ndarray, t_s: float | np.ndarray, yaw: np.ndarray | None = None
+) -> np.ndarray:
     """The planar pose at ``t_s`` of a trajectory (stamps (N,), poses (N, 3)), linear between
-    samples (yaw unwrapped), held beyond its ends."""
-    yaw = np.unwrap(poses[:, 2])
-    return np.array([np.interp(t_s, stamps_s, poses[:, 0]), np.interp(t_s, stamps_s, poses[:, 1]),
-                     np.interp(t_s, stamps_s, yaw)])  # fmt: skip
+    samples (yaw unwrapped), held beyond its ends: (3,), or (M, 3) for M instants. ``yaw``: the
+    trajectory's yaw unwrapped (``np.unwrap(poses[:, 2])``), for a caller that asks often (the
+    unwrapping takes as long as the trajectory)."""
+    yaw = np.unwrap(poses[:, 2]) if yaw is None else yaw
+    at = [np.interp(t_s, stamps_s, poses[:, 0]), np.interp(t_s, stamps_s, poses[:, 1]),
+          np.interp(t_s, stamps_s, yaw)]  # fmt: skip
+    return np.array(at) if np.ndim(t_s) == 0 else np.stack(at, axis=-1)
 
 
 def read_tum(path: Path | str) -> tuple[np.ndarray, np.ndarray]:

@@ -104,6 +104,8 @@ class EventMaker:
         self.last: dict[str, tuple[int, list[BeaconDetection], dict[str, int]]] = {}
         # (robot, pose index) -> the robot's odometry pose there: how far its beacon moved.
         self.odometry_at: dict[tuple[str, int], np.ndarray] = {}
+        # robot -> (its odometry poses, their yaw unwrapped): made again when the poses change.
+        self._yaw: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         gauge = robots[0]
         self._emit(Start(gauge, 0, tuple(float(v) for v in starts[gauge])))  # type: ignore[arg-type]
 
@@ -129,8 +131,11 @@ class EventMaker:
         robot = entry["robot"]
         stamps, poses = self.odometry[robot]
         start_s, end_s = float(entry["start_s"]), float(entry["t_s"])
-        before = pose_at(stamps, poses, start_s)
-        after = pose_at(stamps, poses, end_s)
+        held = self._yaw.get(robot)
+        if held is None or held[0] is not poses:  # the odometry grew (a live mission)
+            held = self._yaw[robot] = (poses, np.unwrap(poses[:, 2]))
+        before = pose_at(stamps, poses, start_s, held[1])
+        after = pose_at(stamps, poses, end_s, held[1])
         self.odometry_at.setdefault((robot, int(entry["from_index"])), before)
         self.odometry_at[robot, int(entry["to_index"])] = after
         dx, dy, dyaw = (float(v) for v in se2.between(before, after))

@@ -15,6 +15,7 @@ from sensors.errors import TrajectoryError
 from sensors.trajio import (
     G2oGraph,
     as_logged,
+    pose_at,
     read_carmen_odometry,
     read_g2o,
     read_relations,
@@ -290,3 +291,23 @@ def test_a_tum_file_read_at_once_is_what_the_line_reader_reads(
         np.testing.assert_array_equal(at_once[1], line_by_line[1])
     assert len(at_once[0]) == 300
     np.testing.assert_allclose(at_once[1][:, :2], poses[:, :2], atol=1e-9)
+
+
+def test_pose_at_interpolates_across_the_yaw_wrap_and_holds_beyond_the_ends() -> None:
+    stamps = np.array([0.0, 1.0, 2.0, 3.0])
+    poses = np.array([[0.0, 0.0, 3.0], [1.0, 2.0, -3.0], [2.0, 4.0, -2.5], [3.0, 6.0, -2.0]])
+    mid = pose_at(stamps, poses, 0.5)
+    assert mid.shape == (3,)
+    # From 3.0 rad to −3.0 rad the short way: through π, not through 0.
+    np.testing.assert_allclose(mid, [0.5, 1.0, 3.0 + 0.5 * (2 * math.pi - 6.0)], atol=1e-12)
+    np.testing.assert_allclose(pose_at(stamps, poses, -5.0), poses[0], atol=0)
+    assert pose_at(stamps, poses, 9.0)[2] == pytest.approx(-2.0 + 2 * math.pi)  # unwrapped
+    # Many instants at once, and the unwrapped yaw given: the same numbers, bit for bit.
+    times = np.array([-1.0, 0.25, 1.5, 2.75, 4.0])
+    at_once = pose_at(stamps, poses, times)
+    one_by_one = np.array([pose_at(stamps, poses, t) for t in times])
+    assert at_once.shape == (5, 3)
+    assert np.array_equal(at_once, one_by_one)
+    given = pose_at(stamps, poses, times, np.unwrap(poses[:, 2]))
+    assert np.array_equal(given, at_once)
+    assert np.array_equal(pose_at(stamps, poses, 1.5, np.unwrap(poses[:, 2])), one_by_one[2])

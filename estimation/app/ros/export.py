@@ -200,13 +200,14 @@ def _robot_messages(
         return BagMessage("/tf", "tf2_msgs/msg/TFMessage", ns, message)
 
     stamped = []
-    for n, (t_s, pose) in enumerate(zip(trajectory.stamps_s, trajectory.poses, strict=True)):
+    stamps = np.asarray(trajectory.stamps_s, dtype=float)
+    odom_poses = None if odometry is None else pose_at(*odometry, stamps).reshape(-1, 3)
+    for n, (t_s, pose) in enumerate(zip(stamps, trajectory.poses, strict=True)):
         ns = stamp_ns(float(t_s))
-        if odometry is None:
+        if odom_poses is None:
             out += [tf(ns, "map", odom, np.zeros(3)), tf(ns, odom, base, pose)]
         else:
-            odom_pose = pose_at(*odometry, float(t_s))
-            out.append(tf(ns, "map", odom, se2.compose(pose, se2.inverse(odom_pose))))
+            out.append(tf(ns, "map", odom, se2.compose(pose, se2.inverse(odom_poses[n]))))
         stamped.append(ros.pose_stamped(ns, "map", pose))
         path = ros.path(ns, "map", list(stamped))
         out.append(BagMessage(f"/{robot}/path", "nav_msgs/msg/Path", ns, path))

@@ -312,7 +312,7 @@ class LiveView:
             assert odometry is not None
             # Only the samples the state ends in: at the poses' stamps, and the last one.
             wanted = np.unique(np.append(trajectory.stamps_s, times[-1]))
-            odometry[robot] = (wanted, np.array([pose_at(times, samples, t) for t in wanted]))
+            odometry[robot] = (wanted, pose_at(times, samples, wanted))
         messages, _ = result_messages(
             self.ros, loop.config, trajectories, loop.map.grid, odometry=odometry
         )
