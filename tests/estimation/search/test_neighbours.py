@@ -44,25 +44,9 @@ def test_the_answer_is_the_k_d_trees(seed: int, n: int, k: int, reach: float, ce
     np.testing.assert_allclose(_distances(points, queries, index),
                                _distances(points, queries, expected), atol=1e-12)  # fmt: skip
     assert ((index == n) == (expected == n)).all()
-
-
-@settings(max_examples=60, deadline=None)
-@given(
-    seed=st.integers(0, 2**32 - 1),
-    n=st.integers(1, 300),
-    reach=st.floats(0.01, 2.0),
-    cell=st.floats(0.03, 0.6),
-)
-def test_any_within_says_whether_the_tree_finds_a_point(
-    seed: int, n: int, reach: float, cell: float
-) -> None:
-    rng = np.random.default_rng(seed)
-    points = rng.uniform(-2.0, 2.0, (n, 3)) * rng.uniform(0.01, 3.0, 3)
-    queries = rng.uniform(-3.0, 3.0, (40, 3))
-    near = PointGrid(points, cell_m=cell).any_within(queries, reach)
-    assert near.shape == (40,)
+    near = grid.any_within(queries, reach)  # whether the tree finds one, not which
     assert near.dtype == bool
-    assert (near == (_tree(points, queries, 1, reach)[:, 0] < n)).all()
+    assert (near == (expected[:, 0] < n)).all()
 
 
 def test_any_within_on_a_surface_empty_and_at_the_reach() -> None:
