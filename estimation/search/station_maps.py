@@ -485,16 +485,21 @@ class StationMaps:
         by_anchor: dict[int, list[int]] = {}
         for n, (_, anchor, _) in enumerate(closures):
             by_anchor.setdefault(anchor.key, []).append(n)
-        held = {key: self._older.pop(key, None) for key in by_anchor}
+        held: dict[int, _OlderMap | None] = {k: self._older.pop(k, None) for k in by_anchor}
+        # The grids kept afterwards: the last used. The others are let go as soon as their
+        # anchor's closures are done, so that at most one grid per thread is made at a time.
+        last_used = sorted(by_anchor, key=lambda k: by_anchor[k][-1])
+        keep = set(last_used[-_OLDER_GRIDS:])
 
         def fuse(numbers: list[int]) -> tuple[_OlderMap | None, list[_OlderMade]]:
-            kept = held[closures[numbers[0]][1].key]
+            key = closures[numbers[0]][1].key
+            kept = held.pop(key)
             made: list[_OlderMade] = []
             for n in numbers:
                 _, anchor, older = closures[n]
                 kept, band, rays, seconds = self._older_step(kept, anchor, older, estimate, ties)
                 made.append((band, rays, seconds))
-            return kept, made
+            return (kept if key in keep else None), made
 
         fused = side_by_side(fuse, list(by_anchor.values()), workers)
         bands: list[Band | None] = [None] * len(closures)
@@ -504,9 +509,10 @@ class StationMaps:
                 work = self._work(closures[n][0].key)
                 work.older_rays += rays
                 work.older_seconds += seconds
-            held[key] = kept
-        for key in sorted(by_anchor, key=lambda k: by_anchor[k][-1]):  # as last used
-            if (kept := held[key]) is not None:
+            if kept is not None:
+                held[key] = kept
+        for key in last_used:
+            if (kept := held.get(key)) is not None:
                 self._older[key] = kept
         while len(self._older) > _OLDER_GRIDS:
             self._older.popitem(last=False)

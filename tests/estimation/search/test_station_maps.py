@@ -14,6 +14,7 @@ from estimation.app.rig import T_robot_scanner, station_params
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.marginals import relative_covariances
+from estimation.search import station_maps
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
 from estimation.search.registration import RegistrationParams
@@ -163,7 +164,7 @@ def test_the_older_stations_map_is_appended_to_and_equals_the_map_fused_at_once(
 
 
 def test_older_maps_of_several_anchors_fused_side_by_side_equal_those_fused_at_once(
-    mission,
+    mission, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Each anchor's closures append to its grid in their order, the anchors side by side:
     every band is the one fusing its views at once gives, the rays counted are those cast."""
@@ -188,6 +189,12 @@ def test_older_maps_of_several_anchors_fused_side_by_side_equal_those_fused_at_o
         + rays[s[1].key] + rays[s[2].key]  # s1's rebuilt
     )  # fmt: skip
     assert list(maps._older) == [s[0].key, s[1].key]  # kept, the last used last
+    # Beyond the grids kept, only the last used anchor's stays; the same bands.
+    monkeypatch.setattr(station_maps, "_OLDER_GRIDS", 1)
+    fewer = StationMaps(EXACT)
+    again = fewer.older_bands(closures, TRUTH, ties, workers=2)
+    assert all(same_band(a, b) for a, b in zip(again, bands, strict=True))
+    assert list(fewer._older) == [s[1].key]
     assert maps.older_bands([], TRUTH, ties, workers=2) == []
     # A closure whose older stations have no view with a pose has no band.
     assert maps.older_bands([(s[3], s[0], s[:1])], {}, ties) == [None]
