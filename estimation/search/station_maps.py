@@ -295,6 +295,8 @@ class _OlderMap:
 
 #: What one closure's older-stations band took: the band, the rays cast, the seconds.
 _OlderMade = tuple[Band | None, int, float]
+#: An anchor's key, its closures (their numbers in order) and its grid kept so far.
+_OlderGroup = tuple[int, list[int], _OlderMap | None]
 
 
 @dataclass
@@ -485,15 +487,17 @@ class StationMaps:
         by_anchor: dict[int, list[int]] = {}
         for n, (_, anchor, _) in enumerate(closures):
             by_anchor.setdefault(anchor.key, []).append(n)
-        held: dict[int, _OlderMap | None] = {k: self._older.pop(k, None) for k in by_anchor}
-        # The grids kept afterwards: the last used. The others are let go as soon as their
-        # anchor's closures are done, so that at most one grid per thread is made at a time.
+        # Each anchor's closures with the grid kept so far (taken out while they run). The grids
+        # kept afterwards are the last used; the others are let go as soon as their anchor's
+        # closures are done, so that at most one grid per thread is made at a time.
+        groups: list[_OlderGroup] = [
+            (key, numbers, self._older.pop(key, None)) for key, numbers in by_anchor.items()
+        ]
         last_used = sorted(by_anchor, key=lambda k: by_anchor[k][-1])
         keep = set(last_used[-_OLDER_GRIDS:])
 
-        def fuse(numbers: list[int]) -> tuple[_OlderMap | None, list[_OlderMade]]:
-            key = closures[numbers[0]][1].key
-            kept = held.pop(key)
+        def fuse(group: _OlderGroup) -> tuple[_OlderMap | None, list[_OlderMade]]:
+            key, numbers, kept = group
             made: list[_OlderMade] = []
             for n in numbers:
                 _, anchor, older = closures[n]
@@ -501,8 +505,10 @@ class StationMaps:
                 made.append((band, rays, seconds))
             return (kept if key in keep else None), made
 
-        fused = side_by_side(fuse, list(by_anchor.values()), workers)
+        fused = side_by_side(fuse, groups, workers)
+        del groups  # the grids not kept go with their group's answer
         bands: list[Band | None] = [None] * len(closures)
+        kept_by_anchor: dict[int, _OlderMap] = {}
         for (key, numbers), (kept, made) in zip(by_anchor.items(), fused, strict=True):
             for n, (band, rays, seconds) in zip(numbers, made, strict=True):
                 bands[n] = band
@@ -510,10 +516,10 @@ class StationMaps:
                 work.older_rays += rays
                 work.older_seconds += seconds
             if kept is not None:
-                held[key] = kept
+                kept_by_anchor[key] = kept
         for key in last_used:
-            if (kept := held.get(key)) is not None:
-                self._older[key] = kept
+            if key in kept_by_anchor:
+                self._older[key] = kept_by_anchor[key]
         while len(self._older) > _OLDER_GRIDS:
             self._older.popitem(last=False)
         return bands
