@@ -268,6 +268,8 @@ def _walk_cube(
     incz = 1 if sz > 0 else MZ
     m = m0
     _mark(cube, m)
+    # The z step stands twice: folded into one branch (x if below both, y if below z and not
+    # above x, else z) the walk took 35 % longer at 0.1 and 0.2 m (essex_lab's scan, stop 47).
     for _ in range(total - 1):
         if tmx < tmy:
             if tmx < tmz:
