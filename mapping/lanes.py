@@ -12,7 +12,7 @@ from __future__ import annotations
 import itertools
 import os
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import numpy as np
 
@@ -64,7 +64,11 @@ def mark_side_by_side(
         return rays[left_rays[:n_rays]], free[left_free[:n_free]]
 
     others = [_helpers().submit(mark, k) for k in range(1, lanes)]
-    left = [mark(0), *(f.result() for f in others)]
+    try:
+        first = mark(0)
+    finally:
+        wait(others)  # on an error too: no helper goes on marking after the call has ended
+    left = [first, *(f.result() for f in others)]
     for other in cubes[1:]:
         merge_cube(cube, other)
     return (np.concatenate([rays for rays, _ in left]),

@@ -261,10 +261,15 @@ def test_rays_walked_side_by_side_give_the_same_grid_bit_for_bit(
     assert not any(cube.any() for cube in lane_cubes(threads - 1))
 
 
+@pytest.mark.parametrize("failing", ["helper", "caller"])
 def test_a_thread_that_fails_leaves_no_marks_for_the_next_scan(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, failing: str
 ) -> None:
+    """A share that fails after marking, on a helper or on the caller's thread (the helper
+    then still marking, slowly): the error reaches the caller once every helper is done, and
+    the next scan is fused as if alone."""
     import threading
+    import time
 
     import mapping.lanes as lanes_module
 
@@ -275,16 +280,23 @@ def test_a_thread_that_fails_leaves_no_marks_for_the_next_scan(
     reference.integrate_scan(next_scan[1], next_scan[0], next_scan[2])
     real = lanes_module.mark_rays
 
-    def fails_on_a_helper(*args: object) -> int:
+    def fails(*args: object) -> int:
+        on_helper = threading.current_thread() is not threading.main_thread()
+        if on_helper and failing == "caller":
+            time.sleep(0.2)  # still marking when the caller fails
         result = real(*args)  # its marks are made, then it fails
-        if threading.current_thread() is not threading.main_thread():
-            raise RuntimeError("helper failed")
+        if on_helper:
+            helper_done.append(True)
+        if on_helper == (failing == "helper"):
+            raise RuntimeError(f"{failing} failed")
         return result
 
+    helper_done: list[bool] = []
     grid = OccupancyGrid(params)
-    monkeypatch.setattr(lanes_module, "mark_rays", fails_on_a_helper)
-    with pytest.raises(RuntimeError, match="helper failed"):
+    monkeypatch.setattr(lanes_module, "mark_rays", fails)
+    with pytest.raises(RuntimeError, match=f"{failing} failed"):
         grid.integrate_scan(points, sensor, directions, threads=2)
+    assert helper_done  # the helper finished its share before the error came out
     monkeypatch.setattr(lanes_module, "mark_rays", real)
     again = OccupancyGrid(params)
     again.integrate_scan(next_scan[1], next_scan[0], next_scan[2], threads=2)
