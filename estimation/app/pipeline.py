@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ from estimation.app.dataset import (
 )
 from estimation.app.events import Counts, build_events
 from estimation.app.memory import give_back_memory
-from estimation.app.results import BatchOutput, write_results
+from estimation.app.results import BatchOutput, figure_worker, write_results
 from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
@@ -208,7 +209,22 @@ def _finish(
     figures: bool = True,
 ) -> BatchOutput:
     """Re-fuse every sweep at its optimized pose, then write the result directory (``searches``:
-    the mission's search records, for the figures of their PDFs; ``figures`` False: none drawn)."""
+    the mission's search records, for the figures of their PDFs; ``figures`` False: none drawn).
+    The figures' worker process starts first: its imports run while this one fuses the map."""
+    with figure_worker(figures) as worker:
+        return _fuse_and_write(prepared, solution, timings, out, extra, searches, figures, worker)
+
+
+def _fuse_and_write(
+    prepared: Prepared,
+    solution: Solution,
+    timings: Timings,
+    out: Path,
+    extra: dict[str, Any],
+    searches: list[SearchRecord],
+    figures: bool,
+    worker: ProcessPoolExecutor | None,
+) -> BatchOutput:
     dataset = prepared.dataset
     config = dataset.config
     clock = time.perf_counter()
@@ -276,7 +292,7 @@ def _finish(
     output = BatchOutput(
         out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances, searches
     )
-    write_results(output, config, figures=figures)
+    write_results(output, config, figures=figures, worker=worker)
     return output
 
 

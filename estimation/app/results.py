@@ -11,8 +11,12 @@ result only when all of it was written.
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import math
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,6 +26,7 @@ import numpy as np
 from estimation import __version__
 from estimation.app.config import Config, config_to_yaml
 from estimation.app.rig import cut_ceiling_band
+from estimation.app.workers import shared_jobs, spawn_worker
 from estimation.posegraph.keys import key_label, pose_key
 from mapping.errors import MapError
 from mapping.formats.npz import save_map
@@ -42,6 +47,7 @@ __all__ = [
     "COVARIANCES_VERSION",
     "BatchOutput",
     "covariances_json",
+    "figure_worker",
     "graph_to_g2o",
     "report_markdown",
     "write_results",
@@ -100,9 +106,33 @@ def graph_to_g2o(output: BatchOutput) -> tuple[G2oGraph, dict[int, int]]:
     return graph, ids
 
 
-def write_results(output: BatchOutput, config: Config, *, figures: bool = True) -> None:
+#: What the figure worker imports before it draws: the renderers and what their arguments are.
+FIGURE_IMPORTS = (
+    "estimation.app.figures",
+    "matplotlib.backends.backend_agg",
+    "mpl_toolkits.mplot3d",
+    "estimation.search.records",
+)
+
+
+@contextlib.contextmanager
+def figure_worker(figures: bool = True) -> Iterator[ProcessPoolExecutor | None]:
+    """The worker process that draws a result's figures beside this one (None without
+    ``figures``), started on entry — its imports take about a second, best spent while this
+    process fuses and writes the map — and shut down on exit."""
+    worker = spawn_worker(FIGURE_IMPORTS) if figures else None
+    try:
+        yield worker
+    finally:
+        if worker is not None:
+            worker.shutdown(wait=True, cancel_futures=True)
+
+
+def write_results(output: BatchOutput, config: Config, *, figures: bool = True,
+                  worker: ProcessPoolExecutor | None = None) -> None:  # fmt: skip
     """The result folder (docs/results.md), replacing an earlier result atomically; without
-    ``figures`` the folder has no ``figures/`` (drawing them is a quarter of ``batch``'s time)."""
+    ``figures`` the folder has no ``figures/`` (drawing them is a quarter of ``batch``'s time).
+    ``worker`` (:func:`figure_worker`): draws figures beside this process."""
     with replace_directory(output.out_dir, "result") as work:
         for robot, poses in output.poses.items():
             if not poses:
@@ -130,9 +160,8 @@ def write_results(output: BatchOutput, config: Config, *, figures: bool = True) 
             output.report["ceiling"] = f"not written: {exc}"
         output.report["occupied_voxels"] = occupied
         output.report["g2o_vertices"] = {key_label(k): n for k, n in ids.items()}
-        output.report["figures"] = (
-            write_figures(output, ceiling, work / "figures") if figures else {"drawn": False}
-        )
+        drawn = write_figures(output, ceiling, work / "figures", worker) if figures else None
+        output.report["figures"] = drawn or {"drawn": False}
         header = f"# effective configuration; coopmap {__version__}\n"
         write_text_atomic(work / "config.yaml", header + config_to_yaml(config))
         write_text_atomic(work / "report.md", report_markdown(output))
@@ -166,10 +195,12 @@ def _used(record: SearchRecord) -> str:
     return ", a factor" if record.used else ", not used"
 
 
-def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str, Any]:
+def write_figures(output: BatchOutput, ceiling: Any, figures: Path,
+                  worker: ProcessPoolExecutor | None = None) -> dict[str, Any]:  # fmt: skip
     """A result's figures: the ceiling band with the trajectories, the occupied cells (paper
     Fig. 5a), the first sweep as measured (Fig. 4b) and the search PDFs (Fig. 5b); returns what
-    was drawn for ``report.json``."""
+    was drawn for ``report.json``. With ``worker`` (:func:`~estimation.app.workers.spawn_worker`)
+    all but the occupied cells (the whole grid) are drawn by it and this process side by side."""
     from estimation.app.figures import (
         render_map_cubes,
         render_search_pdf,
@@ -178,24 +209,29 @@ def write_figures(output: BatchOutput, ceiling: Any, figures: Path) -> dict[str,
     )
 
     drawn: dict[str, Any] = {"drawn": True}
-    if ceiling is not None:
-        render_trajectories(ceiling, output.poses, figures / "ceiling_trajectories.png")
-        drawn["ceiling"] = "ceiling_trajectories.png"
-    render_map_cubes(output.grid, figures / "map_cubes.png")
+    here = [functools.partial(render_map_cubes, output.grid, figures / "map_cubes.png")]
     drawn["map"] = "map_cubes.png"
+    shared = []
+    if ceiling is not None:
+        shared.append(functools.partial(render_trajectories, ceiling, output.poses,
+                                        figures / "ceiling_trajectories.png"))  # fmt: skip
+        drawn["ceiling"] = "ceiling_trajectories.png"
     if output.sweeps:
         sweep = output.sweeps[0]
         beacons = np.array([d.center_scanner for d in sweep.detections]).reshape(-1, 3)
         title = f"sweep of {sweep.robot}{sweep.index} (dwell {sweep.dwell})"
-        render_sweep(sweep.points_scanner, figures / "sweep.png", beacons=beacons, title=title)
+        shared.append(functools.partial(render_sweep, sweep.points_scanner, figures / "sweep.png",
+                                        beacons=beacons, title=title))  # fmt: skip
         drawn["sweep"] = {"file": "sweep.png", "pose": f"{sweep.robot}{sweep.index}"}
     pdfs = []
     for name, record in _pdf_figures(output.searches):
         kind = {"relocalize": "relocalization", "loop": "loop closure"}.get(record.kind, "link")
         title = (f"{kind}: {record.station} against {record.against} ({record.band} band), "
                  f"peak ratio {record.peak_ratio:.3g}" + _used(record))  # fmt: skip
-        render_search_pdf(record.picture, np.array(record.pose), figures / name, title=title)
+        shared.append(functools.partial(render_search_pdf, record.picture, np.array(record.pose),
+                                        figures / name, title=title))  # fmt: skip
         pdfs.append(name)
+    shared_jobs(here, shared, worker)
     drawn["pdfs"] = pdfs
     drawn["pdfs_not_drawn"] = len(
         [r for r in output.searches if r.picture is not None and r.band == "ceiling"]

@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import multiprocessing
 import os
-import threading
 import time
 import uuid
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -23,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimation.app.workers import watch_parent
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
@@ -38,7 +38,7 @@ from estimation.search.stations import (
     station_links,
 )
 
-__all__ = ["ConcurrentLocalizer", "Localized", "localize_station", "watch_parent"]
+__all__ = ["ConcurrentLocalizer", "Localized", "localize_station"]
 
 
 @dataclass(frozen=True)
@@ -136,18 +136,6 @@ class _Job:
     station: str
     future: Future[Localized]
     submitted_mission_s: float
-
-
-def watch_parent(parent_pid: int, poll_s: float = 0.5) -> None:
-    """In the worker: exit when the loop's process is gone (killed with SIGKILL, a worker
-    would otherwise wait for work forever: it holds both ends of the pool's pipes)."""
-
-    def watch() -> None:
-        while os.getppid() == parent_pid:
-            time.sleep(poll_s)
-        os._exit(0)
-
-    threading.Thread(target=watch, name="watch-parent", daemon=True).start()
 
 
 class ConcurrentLocalizer:

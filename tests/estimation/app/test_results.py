@@ -12,6 +12,8 @@ import pytest
 from estimation.app.config import load_config
 from estimation.app.evaluation.evaluate import evaluate
 from estimation.app.pipeline import run_batch
+from estimation.app.results import BatchOutput, figure_worker, write_figures
+from estimation.app.rig import cut_ceiling_band
 from mapping.band import extract_band
 from mapping.formats.npz import load_map
 from mapping.formats.pgm import UNKNOWN_PIXEL, read_band_pgm
@@ -173,17 +175,43 @@ def test_evaluate_draws_the_ceiling_under_the_true_walls(dataset: Path) -> None:
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.fixture(scope="module")
+def plain(dataset: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, BatchOutput]:
+    out = tmp_path_factory.mktemp("plain") / "plain"
+    return out, run_batch(dataset, out, figures=False)
+
+
 def test_a_result_without_figures_is_the_same_result_without_them(
-    dataset: Path, tmp_path: Path
+    dataset: Path, plain: tuple[Path, BatchOutput]
 ) -> None:
-    out = tmp_path / "plain"
-    output = run_batch(dataset, out, figures=False)
+    out, output = plain
     assert not (out / "figures").exists()
     assert output.report["figures"] == {"drawn": False}
     assert json.loads((out / "report.json").read_text())["figures"] == {"drawn": False}
     assert "figures/" not in (out / "report.md").read_text()
     for robot in ("a", "b"):
         drawn = read_tum(dataset / "result" / "poses" / f"{robot}.tum")
-        plain = read_tum(out / "poses" / f"{robot}.tum")
-        np.testing.assert_array_equal(plain[1], drawn[1])
+        plain_poses = read_tum(out / "poses" / f"{robot}.tum")
+        np.testing.assert_array_equal(plain_poses[1], drawn[1])
     assert (out / "map.npz").read_bytes() == (dataset / "result" / "map.npz").read_bytes()
+
+
+def test_figures_drawn_beside_a_worker_equal_those_drawn_alone(
+    dataset: Path, plain: tuple[Path, BatchOutput], tmp_path: Path
+) -> None:
+    _, output = plain
+    ceiling = cut_ceiling_band(output.grid, load_config(dataset / "result" / "config.yaml"))
+    alone = write_figures(output, ceiling, tmp_path / "alone")
+    with figure_worker() as worker:
+        assert worker is not None
+        shared = write_figures(output, ceiling, tmp_path / "shared", worker)
+    assert shared == alone
+    names = sorted(p.name for p in (tmp_path / "alone").iterdir())
+    assert len(names) == 3 + len(alone["pdfs"]) and len(alone["pdfs"]) == 2
+    assert sorted(p.name for p in (tmp_path / "shared").iterdir()) == names
+    for name in names:
+        assert (tmp_path / "shared" / name).read_bytes() == (tmp_path / "alone" / name).read_bytes()
+    # The result's own figures (drawn with a worker by run_batch) are the same pictures.
+    for name in names:
+        drawn = (dataset / "result" / "figures" / name).read_bytes()
+        assert drawn == (tmp_path / "alone" / name).read_bytes(), name
