@@ -18,7 +18,14 @@ from mapping.errors import MapError
 from mapping.grid import OccupancyGrid
 from mapping.logodds import logodds
 
-__all__ = ["Band", "CeilingRule", "band_layers", "extract_band", "extract_ceiling_band"]
+__all__ = [
+    "Band",
+    "CeilingRule",
+    "band_layers",
+    "band_slab_m",
+    "extract_band",
+    "extract_ceiling_band",
+]
 
 #: Cell centres this close (in cells) to a band edge count as on it (float round-off).
 _EDGE_EPS = 1e-6
@@ -97,6 +104,17 @@ def band_layers(
             f"the band [{z_min_m}, {z_max_m}) m holds no cell centre at {resolution_m} m cells"
         )
     return first, last
+
+
+def band_slab_m(
+    origin_z_m: float, resolution_m: float, z_min_m: float, z_max_m: float
+) -> tuple[float, float]:
+    """The heights (low, high) a ray must reach into to change a cell of the band's layers
+    (:func:`band_layers`), with one cell to spare on either side: fusing only such rays
+    (:func:`mapping.fusion.fuse_scans`' ``z_slab``) gives the band's cells exactly as fusing
+    every ray does."""
+    first, last = band_layers(origin_z_m, resolution_m, z_min_m, z_max_m)
+    return origin_z_m + (first - 1) * resolution_m, origin_z_m + (last + 2) * resolution_m
 
 
 def extract_band(

@@ -18,7 +18,7 @@ from mapping.errors import MapError
 from mapping.grid import GridParams, OccupancyGrid
 from mapping.kernels.cells import resample_blocks
 
-__all__ = ["Scan", "check_rigid", "fuse_scans", "merge_grids", "transform_grid"]
+__all__ = ["Scan", "check_rigid", "fuse_scans", "merge_grids", "rays_into_slab", "transform_grid"]
 
 
 def _no_returns() -> np.ndarray:
@@ -64,12 +64,17 @@ def fuse_scans(
     grid: OccupancyGrid | None = None,
     *,
     threads: int = 1,
+    z_slab: tuple[float, float] | None = None,
 ) -> OccupancyGrid:
     """Integrate every scan at its pose into ``grid`` (a new one with ``params`` if None).
 
     ``T_frame_scanner[i]`` (4, 4) maps scan i's points into the grid's frame: the map frame for
     the global map, the reference robot's frame for a local map. ``threads``: as in
-    :meth:`OccupancyGrid.integrate_scan` (the same grid, sooner).
+    :meth:`OccupancyGrid.integrate_scan` (the same grid, sooner). ``z_slab`` (low, high): only
+    the returns whose ray from the scanner reaches between these heights are cast (beams
+    without a return all are); a map that is only cut into a band (:func:`mapping.band.band_slab_m`)
+    gets the band's cells as with every ray, for the rays' share in the slab (a station map's
+    ceiling band: a third of them). Every cell outside the slab is left out or in part.
     """
     poses = np.asarray(T_frame_scanner, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
@@ -84,8 +89,21 @@ def fuse_scans(
         T = check_rigid(T, f"T_frame_scanner[{i}]")
         R, t = T[:3, :3], T[:3, 3]
         no_return = scan.no_return_scanner @ R.T if len(scan.no_return_scanner) else None
-        grid.integrate_scan(scan.points_scanner @ R.T + t, t, no_return, threads=threads)
+        points = scan.points_scanner @ R.T + t
+        if z_slab is not None:
+            points = points[rays_into_slab(points, t, *z_slab)]
+        grid.integrate_scan(points, t, no_return, threads=threads)
     return grid
+
+
+def rays_into_slab(points: np.ndarray, origin: np.ndarray, low_m: float,
+                   high_m: float) -> np.ndarray:  # fmt: skip
+    """(N,) bool: which rays from ``origin`` (3,) to ``points`` (N, 3) reach heights in
+    [``low_m``, ``high_m``]; true for a point that is not finite (the grid refuses it, as it
+    would without the slab)."""
+    z = points[:, 2]
+    top, bottom = np.maximum(z, origin[2]), np.minimum(z, origin[2])
+    return np.asarray(((top >= low_m) & (bottom <= high_m)) | ~np.isfinite(points).all(axis=1))
 
 
 def merge_grids(grids: Sequence[OccupancyGrid]) -> OccupancyGrid:

@@ -2,7 +2,8 @@
 §6, §7).
 
 A reference station's map is the ceiling band of the sweeps of its dwells taken at poses tied to
-it by a mutual observation (:func:`tied_views`), fused in the station's robot frame. It depends
+it by a mutual observation (:func:`tied_views`), fused in the station's robot frame from the rays
+that reach the band's heights (:func:`band_slab`; the band is that of every ray). It depends
 on the *relative* poses of those views to the station only, so when the estimate moves between
 the search stages (the whole mission shifts by metres once the links fix its headings) the map
 stays what it was. :class:`StationMaps` keeps each station's band and the relative poses it was
@@ -38,10 +39,10 @@ from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.search.exhaustive import SearchParams
 from estimation.search.registration import Cloud, RegistrationParams
-from mapping.band import Band, CeilingRule, extract_band, extract_ceiling_band
+from mapping.band import Band, CeilingRule, band_slab_m, extract_band, extract_ceiling_band
 from mapping.errors import MapError
 from mapping.fusion import Scan as MapScan
-from mapping.fusion import fuse_scans
+from mapping.fusion import fuse_scans, rays_into_slab
 from mapping.grid import GridParams, OccupancyGrid
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
@@ -54,6 +55,7 @@ __all__ = [
     "StationWork",
     "View",
     "band_of_grid",
+    "band_slab",
     "cloud_of_views",
     "fuse_band",
     "fuse_views",
@@ -210,11 +212,32 @@ def fuse_views(
     estimate: dict[int, np.ndarray],
     params: StationParams,
     grid: OccupancyGrid | None = None,
-) -> OccupancyGrid:
+    which: str | None = None,
+) -> tuple[OccupancyGrid, int]:
     """The views fused, in order, into ``grid`` (a new one if None) in the robot frame ``frame``
-    (a pose in the map frame); every view must have a pose in ``estimate``."""
+    (a pose in the map frame); every view must have a pose in ``estimate``. With ``which``
+    ("ceiling" or "floor"), only the rays that reach that band's heights (:func:`band_slab`):
+    its cells are the same. Returns the grid and the rays cast."""
     transforms = _T_frame_scanner(views, frame, estimate, params)
-    return fuse_scans([MapScan(v.points_scanner) for v in views], transforms, params.grid, grid)
+    slab = band_slab(params, which) if which is not None else None
+    scans = [MapScan(v.points_scanner if slab is None else v.points_scanner[
+        rays_into_slab(v.points_scanner @ T[:3, :3].T + T[:3, 3], T[:3, 3], *slab)
+    ]) for v, T in zip(views, transforms, strict=True)]  # fmt: skip
+    grid = fuse_scans(scans, transforms, params.grid, grid)
+    return grid, sum(len(scan.points_scanner) for scan in scans)
+
+
+def band_slab(params: StationParams, which: str) -> tuple[float, float] | None:
+    """The heights a ray must reach into to touch a cell of a station grid's ``which`` band
+    (:func:`mapping.band.band_slab_m`); None when every ray counts: a band that follows the
+    ceiling takes each column's highest occupied cell, wherever it lies."""
+    if which == "ceiling" and params.ceiling_rule is not None:
+        return None
+    low, high = params.ceiling_m if which == "ceiling" else params.floor_m
+    try:
+        return band_slab_m(float(params.grid.origin_m[2]), params.grid.resolution_m, low, high)
+    except MapError:
+        return None  # no layer: the band is refused when cut
 
 
 def band_of_grid(grid: OccupancyGrid, params: StationParams, which: str) -> Band | None:
@@ -237,7 +260,7 @@ def fuse_band(views: list[View], frame: np.ndarray, estimate: dict[int, np.ndarr
     usable = [v for v in views if v.key in estimate]
     if not usable:
         return None
-    return band_of_grid(fuse_views(usable, frame, estimate, params), params, which)
+    return band_of_grid(fuse_views(usable, frame, estimate, params, which=which)[0], params, which)
 
 
 def _relative(
@@ -282,6 +305,7 @@ class _OwnMap:
     relative: np.ndarray  # (k, 3) the views' poses in the station's frame when fused
     band: Band | None
     cloud: Cloud | None = None  # made when a registration first asks for it
+    rays: int = 0  # cast to fuse it
 
 
 @dataclass
@@ -360,16 +384,17 @@ class StationMaps:
         """The station's map fused afresh (touches nothing kept: runs on any thread), and the
         seconds it took."""
         started = time.perf_counter()
-        grid = fuse_views(views, estimate[station.key], estimate, self.params)
+        grid, rays = fuse_views(views, estimate[station.key], estimate, self.params,
+                                which="ceiling")  # fmt: skip
         made = _OwnMap(tuple(v.key for v in views), relative,
-                       band_of_grid(grid, self.params, "ceiling"))  # fmt: skip
+                       band_of_grid(grid, self.params, "ceiling"), rays=rays)  # fmt: skip
         return made, time.perf_counter() - started
 
     def _keep_own(self, station: Station, views: list[View], made: _OwnMap,
                   seconds: float) -> _OwnMap:  # fmt: skip
         self._own[station.key] = made
         work = self._work(station.key)
-        work.own_rays += sum(len(v.points_scanner) for v in views)
+        work.own_rays += made.rays
         work.own_seconds += seconds
         work.own_builds += 1
         return made
@@ -552,14 +577,14 @@ class StationMaps:
             kept = _OlderMap([], np.zeros((0, 3)), OccupancyGrid(self.params.grid))
             fused = 0
         new = views[fused:]
+        rays = 0
         if new:
-            fuse_views(new, frame, estimate, self.params, kept.grid)
+            _, rays = fuse_views(new, frame, estimate, self.params, kept.grid, which="ceiling")
             kept.views = keys
             kept.relative = np.vstack([kept.relative, relative[fused:]])
         if kept.banded != len(kept.views):
             kept.band = band_of_grid(kept.grid, self.params, "ceiling")
             kept.banded = len(kept.views)
-        rays = sum(len(v.points_scanner) for v in new)
         return kept, kept.band, rays, time.perf_counter() - started
 
     def retain(self, keys: set[int]) -> None:

@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from mapping.band import band_layers, band_slab_m
 from mapping.errors import MapError
-from mapping.fusion import Scan, check_rigid, fuse_scans, merge_grids, transform_grid
+from mapping.fusion import (
+    Scan,
+    check_rigid,
+    fuse_scans,
+    merge_grids,
+    rays_into_slab,
+    transform_grid,
+)
 from mapping.grid import GridParams, OccupancyGrid
 from sensors.geometry.frames import pose2_matrix
 from tests.mapping.conftest import room_scan
@@ -170,3 +178,52 @@ def test_each_thread_has_its_own_scan_cube() -> None:
     assert not there.any()
     discard_scan_cube()
     assert scan_cube() is not here
+
+
+@pytest.mark.parametrize("band", [(1.5, 2.0), (0.1, 0.4), (2.2, 2.6)])
+def test_a_slab_fuses_the_bands_cells_as_every_ray_does(band: tuple[float, float]) -> None:
+    scans, poses = scans_in_room(count=4, seed=3)
+    params = GridParams()
+    slab = band_slab_m(0.0, params.resolution_m, *band)
+    every = fuse_scans(scans, poses, params)
+    some = fuse_scans(scans, poses, params, z_slab=slab)
+    layers = band_layers(0.0, params.resolution_m, *band)
+    inside = {c: v for c, v in as_dict(every).items() if layers[0] <= c[2] <= layers[1]}
+    assert inside
+    assert {c: v for c, v in as_dict(some).items() if layers[0] <= c[2] <= layers[1]} == inside
+    cast = sum(
+        int(rays_into_slab(s.points_scanner @ T[:3, :3].T + T[:3, 3], T[:3, 3], *slab).sum())
+        for s, T in zip(scans, poses, strict=True)
+    )
+    total = sum(len(s.points_scanner) for s in scans)
+    if band[0] > 0.45:  # above the scanner: the floor's rays are left out
+        assert cast < 0.8 * total
+        assert len(as_dict(some)) < len(as_dict(every))
+
+
+def test_rays_into_a_slab_are_those_that_reach_its_heights() -> None:
+    origin = np.array([0.0, 0.0, 0.5])
+    points = np.array([
+        [1.0, 0.0, 3.0],  # up through the slab
+        [1.0, 0.0, 0.0],  # down to the floor: below it
+        [1.0, 0.0, 1.0],  # ends at its bottom
+        [1.0, 0.0, 0.99],  # ends just below
+        [1.0, 0.0, np.nan],  # not a point: kept, for the grid to refuse
+        [np.inf, 0.0, 0.0],
+    ])  # fmt: skip
+    keep = rays_into_slab(points, origin, 1.0, 2.0)
+    assert keep.tolist() == [True, False, True, False, True, True]
+    above = rays_into_slab(points[:4], np.array([0.0, 0.0, 2.5]), 1.0, 2.0)
+    assert above.tolist() == [False, True, True, True]  # from above it: down through it
+    with pytest.raises(MapError, match="finite"):
+        fuse_scans([Scan(points[:5])], [np.eye(4)], GridParams(), z_slab=(1.0, 2.0))
+
+
+def test_a_bands_slab_spares_a_cell_on_either_side() -> None:
+    low, high = band_slab_m(0.0, 0.1, 2.3, 2.9)
+    assert (low, high) == pytest.approx((2.2, 3.0))
+    first, last = band_layers(0.0, 0.1, 2.3, 2.9)
+    assert low == pytest.approx((first - 1) * 0.1)
+    assert high == pytest.approx((last + 2) * 0.1)
+    with pytest.raises(MapError, match="no cell centre"):
+        band_slab_m(0.0, 0.1, 2.31, 2.32)

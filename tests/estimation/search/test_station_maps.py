@@ -25,13 +25,16 @@ from estimation.search.station_maps import (
     StationMaps,
     StationParams,
     View,
+    band_of_grid,
     fuse_band,
+    fuse_views,
     mutual_ties,
     tied_views,
 )
 from estimation.search.station_maps import _moved_m as moved_m
 from estimation.search.stations import loop_closures, scan_links, station_links
-from mapping.band import Band
+from mapping.band import Band, CeilingRule, band_layers
+from mapping.fusion import rays_into_slab
 from sensors.geometry import se2
 from sensors.geometry.frames import pose2_matrix
 from tests.mapping.conftest import room_scan
@@ -85,6 +88,16 @@ def same_band(a: Band | None, b: Band | None) -> bool:
     )
 
 
+def cast(view: View) -> int:
+    """How many of ``view``'s rays reach the ceiling band's heights: those a station map casts
+    (heights are the same in every robot frame)."""
+    T = T_robot_scanner(CONFIG)
+    slab = station_maps.band_slab(EXACT, "ceiling")
+    assert slab is not None
+    points = view.points_scanner @ T[:3, :3].T + T[:3, 3]
+    return int(rays_into_slab(points, T[:3, 3], *slab).sum())
+
+
 def moved(estimate: dict[int, np.ndarray], by: np.ndarray) -> dict[int, np.ndarray]:
     """The whole estimate moved rigidly by ``by`` (x, y, yaw) about the map origin."""
     return {k: se2.compose(by, v) for k, v in estimate.items()}
@@ -104,9 +117,7 @@ def test_a_station_map_is_fused_once_while_its_views_stay_put(mission) -> None:
     first = maps.band(stations[1], TRUTH, ties)
     assert maps.band(stations[1], dict(TRUTH), ties) is first
     assert maps.work[stations[1].key].own_builds == 1
-    assert maps.work[stations[1].key].own_rays == sum(
-        len(v.points_scanner) for v in stations[1].views
-    )
+    assert maps.work[stations[1].key].own_rays == sum(cast(v) for v in stations[1].views)
     # The mapper 1 mm away: fused again, and the same as fused from scratch, bit for bit.
     nudged = dict(TRUTH)
     nudged[pose_key("a", 1)] = TRUTH[pose_key("a", 1)] + [0.001, 0.0, 0.0]
@@ -116,6 +127,50 @@ def test_a_station_map_is_fused_once_while_its_views_stay_put(mission) -> None:
         tied_views(stations[1], ties), nudged[stations[1].key], nudged, EXACT, "ceiling"
     )
     assert same_band(again, scratch)
+
+
+@pytest.mark.parametrize("which", ["ceiling", "floor"])
+def test_a_band_fused_from_the_rays_into_its_heights_is_the_band_of_every_ray(
+    mission, which: str
+) -> None:
+    stations, factors = mission
+    views = tied_views(stations[2], mutual_ties(factors))
+    frame = TRUTH[stations[2].key]
+    grid, rays = fuse_views(views, frame, TRUTH, EXACT, which=which)
+    every, all_rays = fuse_views(views, frame, TRUTH, EXACT)
+    assert all_rays == sum(len(v.points_scanner) for v in views)
+    if which == "ceiling":  # the floor and the low walls lie below the band
+        assert 0.1 * all_rays < rays < 0.8 * all_rays
+        assert len(grid.cells()[0]) < len(every.cells()[0])
+    else:  # the scanner stands in the floor band: every ray reaches it
+        assert rays == all_rays
+    assert same_band(band_of_grid(grid, EXACT, which), band_of_grid(every, EXACT, which))
+    assert same_band(
+        fuse_band(views, frame, TRUTH, EXACT, which), band_of_grid(every, EXACT, which)
+    )
+    # The cells of the band's layers, value for value; the grid holds fewer cells.
+    low, high = EXACT.ceiling_m if which == "ceiling" else EXACT.floor_m
+    layers = band_layers(0.0, EXACT.grid.resolution_m, low, high)
+    (cells, values), (all_cells, all_values) = (
+        grid.cells(z_range=layers),
+        every.cells(z_range=layers),
+    )
+    order, all_order = np.lexsort(cells.T), np.lexsort(all_cells.T)
+    np.testing.assert_array_equal(cells[order], all_cells[all_order])
+    np.testing.assert_array_equal(values[order], all_values[all_order])
+
+
+def test_a_band_that_follows_the_ceiling_casts_every_ray(mission) -> None:
+    stations, factors = mission
+    follow = dataclasses.replace(EXACT, ceiling_rule=CeilingRule())
+    assert station_maps.band_slab(follow, "ceiling") is None
+    assert station_maps.band_slab(follow, "floor") is not None
+    views = tied_views(stations[1], mutual_ties(factors))
+    _, rays = fuse_views(views, TRUTH[stations[1].key], TRUTH, follow, which="ceiling")
+    assert rays == sum(len(v.points_scanner) for v in views)
+    # A band between two cell centres has no layer: nothing to bound, refused when cut.
+    thin = dataclasses.replace(EXACT, ceiling_m=(2.31, 2.32))
+    assert station_maps.band_slab(thin, "ceiling") is None
 
 
 def test_a_station_map_stays_when_the_whole_mission_moves(mission) -> None:
@@ -155,7 +210,7 @@ def test_the_older_stations_map_is_appended_to_and_equals_the_map_fused_at_once(
     assert same_band(grown, fuse_band(views, TRUTH[anchor.key], TRUTH, EXACT, "ceiling"))
     assert not same_band(first, grown)
     # Only the views not fused before were cast for the second search.
-    new_rays = sum(len(v.points_scanner) for v in views[2:])
+    new_rays = sum(cast(v) for v in views[2:])
     assert maps.work[stations[3].key].older_rays == new_rays
     # A list that does not start with the views fused so far rebuilds the grid.
     other = maps.older_band(stations[3], anchor, stations[1:3], TRUTH, ties)
@@ -181,7 +236,7 @@ def test_older_maps_of_several_anchors_fused_side_by_side_equal_those_fused_at_o
     for band, closure in zip(bands, closures, strict=True):
         assert same_band(band, one_by_one.older_band(*closure, TRUTH, ties))
     # s0's grid: s0's views, then s1's and s2's appended; s1's: s0 and s1, rebuilt for s1, s2.
-    rays = {st.key: sum(len(v.points_scanner) for v in tied_views(st, ties)) for st in s}
+    rays = {st.key: sum(cast(v) for v in tied_views(st, ties)) for st in s}
     assert maps.work[s[2].key].older_rays == rays[s[0].key]
     assert maps.work[s[3].key].older_rays == (
         rays[s[0].key] + rays[s[1].key]  # s1's first
