@@ -22,7 +22,7 @@ from numba import njit
 
 from estimation.errors import EstimationError
 
-__all__ = ["PointGrid"]
+__all__ = ["NearestSince", "PointGrid"]
 
 #: The grid's cells are at least this big (m), and at most this many per point (and never more
 #: than ``_MAX_CELLS``): a cloud spread over a large box gets larger cells, so that the grid's
@@ -45,6 +45,7 @@ class PointGrid:
         if not cell_m > 0.0:
             raise EstimationError(f"neighbour grid: cell size must be positive, got {cell_m}")
         self.size = len(points)
+        self.points = points  # as given (a view of the caller's array when it is float64)
         lower = points.min(axis=0) if len(points) else np.zeros(3)
         span = (points.max(axis=0) - lower) if len(points) else np.zeros(3)
         # Cells of cell_m unless that makes too many; then as many as allowed.
@@ -167,3 +168,107 @@ def _query(
                     break
         for j in range(count):
             out[q, j] = found[j]
+
+
+class NearestSince:
+    """:meth:`PointGrid.query` with ``k = 1`` for queries that move a little at a time (the
+    registration's source points, iteration after iteration): a query is looked up again only
+    when it has moved so far since its last lookup that another point may have become its
+    nearest — half the gap between its nearest and second nearest then, within ``reach_m`` +
+    ``margin_m`` — and otherwise answered from that lookup. The answers are the query's, index
+    for index: a query kept lies strictly nearer to its point than to any other (ties are
+    always looked up again), and whether that point is within reach is checked afresh."""
+
+    def __init__(self, grid: PointGrid, count: int, reach_m: float, margin_m: float) -> None:
+        if not (reach_m >= 0.0 and margin_m > 0.0):
+            raise EstimationError(f"nearest: reach {reach_m} and margin {margin_m} must be "
+                                  "non-negative and positive")  # fmt: skip
+        self.grid = grid
+        self.reach_m = reach_m
+        self.margin_m = margin_m
+        self.nearest = np.full(count, grid.size, dtype=np.int64)
+        self.at = np.zeros((count, 3))  # where each was last looked up
+        self.gap = np.full(count, -1.0)  # how far it may move from there (< 0: look it up)
+        self.looked_up = 0  # queries looked up (for the tests)
+
+    def query(self, rows: np.ndarray, queries: np.ndarray) -> np.ndarray:
+        """(R,) the nearest point within reach of query ``rows[r]`` now at ``queries[r]``;
+        ``len(grid)`` where none lies within reach."""
+        queries = np.ascontiguousarray(queries, dtype=np.float64).reshape(-1, 3)
+        rows = np.asarray(rows, dtype=np.int64)
+        out = np.empty(len(rows), dtype=np.int64)
+        stale = np.empty(len(rows), dtype=np.int64)
+        points, reach = self.grid.points, float(self.reach_m)
+        count = _recall(rows, queries, self.at, self.gap, self.nearest, points, reach, out, stale)
+        if count:
+            stale = stale[:count]
+            far = reach + self.margin_m
+            answer = self.grid.query(queries[stale], 2, far)
+            _learn(rows, stale, queries, answer, points, reach, far, self.at, self.gap,
+                   self.nearest, out)  # fmt: skip
+            self.looked_up += count
+        return out
+
+
+#: Below this, a query's distances to two points count as equal (m; float round-off is ~1e-16).
+_TIE_M = 1e-9
+
+
+@njit(cache=True, nogil=True)
+def _recall(
+    rows: np.ndarray, queries: np.ndarray, at: np.ndarray, gap: np.ndarray,
+    nearest: np.ndarray, points: np.ndarray, reach: float, out: np.ndarray, stale: np.ndarray,
+) -> int:  # fmt: skip
+    """Answers the queries that stayed within their gap into ``out``; the others' positions in
+    ``rows`` into ``stale``, returning how many."""
+    n = len(points)
+    reach2 = reach * reach
+    count = 0
+    for r in range(len(rows)):
+        i = rows[r]
+        qx, qy, qz = queries[r, 0], queries[r, 1], queries[r, 2]
+        mx, my, mz = qx - at[i, 0], qy - at[i, 1], qz - at[i, 2]
+        g = gap[i]
+        if g <= 0.0 or mx * mx + my * my + mz * mz >= g * g:
+            stale[count] = r
+            count += 1
+            continue
+        t = nearest[i]
+        out[r] = n
+        if t < n:  # the same sums as the grid's search, so the same verdict on the reach
+            dx, dy, dz = points[t, 0] - qx, points[t, 1] - qy, points[t, 2] - qz
+            if dx * dx + dy * dy + dz * dz <= reach2:
+                out[r] = t
+    return count
+
+
+@njit(cache=True, nogil=True)
+def _learn(
+    rows: np.ndarray, stale: np.ndarray, queries: np.ndarray, answer: np.ndarray,
+    points: np.ndarray, reach: float, far: float, at: np.ndarray, gap: np.ndarray,
+    nearest: np.ndarray, out: np.ndarray,
+) -> None:  # fmt: skip
+    """From the two nearest within ``far`` of each stale query (``answer``): its answer, and
+    its nearest, position and gap remembered."""
+    n = len(points)
+    reach2 = reach * reach
+    for s in range(len(stale)):
+        r = stale[s]
+        i = rows[r]
+        qx, qy, qz = queries[r, 0], queries[r, 1], queries[r, 2]
+        at[i, 0], at[i, 1], at[i, 2] = qx, qy, qz
+        first, second = answer[s, 0], answer[s, 1]
+        nearest[i] = first
+        out[r] = n
+        if first >= n:  # nothing within far: nothing within reach until it moves by the margin
+            gap[i] = far - reach - _TIE_M
+            continue
+        dx, dy, dz = points[first, 0] - qx, points[first, 1] - qy, points[first, 2] - qz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 <= reach2:
+            out[r] = first
+        other = far
+        if second < n:
+            ex, ey, ez = points[second, 0] - qx, points[second, 1] - qy, points[second, 2] - qz
+            other = math.sqrt(ex * ex + ey * ey + ez * ez)
+        gap[i] = 0.5 * (other - math.sqrt(d2)) - _TIE_M

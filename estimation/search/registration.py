@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from estimation.errors import EstimationError
-from estimation.search.neighbours import PointGrid
+from estimation.search.neighbours import NearestSince, PointGrid
 from estimation.search.normals import plane_normals
 
 __all__ = ["Cloud", "Registration", "RegistrationParams", "register"]
@@ -82,6 +82,9 @@ _DEGENERATE = 1e-2
 #: ... and only when that direction is a shift: its unit vector's yaw part (rad per m) is below
 #: this (a corridor's axis has none; a loose turn is never taken as converged).
 _SHIFT_YAW = 0.1
+#: A source point's nearest target is looked up with the one after it within the reach plus
+#: this (m): while the point moves by less than half their gap, it keeps its nearest.
+_NEAREST_MARGIN_M = 0.05
 #: Source points farther than ``max_distance_m`` plus this from every target point at some pose
 #: are not looked up again until the pose has moved a point by more than this (m).
 _OVERLAP_MARGIN_M = 0.15
@@ -493,6 +496,18 @@ class _Near:
         self.grid = target.grid
         self.reach_m = reach_m
         self._checked: dict[int, tuple[Cloud, float, np.ndarray, np.ndarray]] = {}
+        self._nearest: dict[tuple[int, float], tuple[Cloud, NearestSince]] = {}
+
+    def nearest(self, source: Cloud, rows: np.ndarray, moved: np.ndarray,
+                reach_m: float) -> np.ndarray:  # fmt: skip
+        """(R,) the target nearest to each of ``source``'s points ``rows`` (now at ``moved``)
+        within ``reach_m``, ``len(target)`` where none (:class:`NearestSince`)."""
+        key = (id(source), reach_m)
+        memo = self._nearest.get(key)
+        if memo is None:
+            memo = (source, NearestSince(self.grid, len(source), reach_m, _NEAREST_MARGIN_M))
+            self._nearest[key] = memo
+        return memo[1].query(rows, moved)
 
     def rows(self, source: Cloud, pose: np.ndarray) -> np.ndarray:
         """Indices of ``source``'s points that may have a target within ``reach_m`` at ``pose``
@@ -529,7 +544,7 @@ def _matches(
     rows = lookup.rows(source, pose) if reach_m <= lookup.reach_m else np.arange(len(source))
     moved = _moved(source.points[rows], pose)
     oriented = source.oriented and target.oriented
-    nearest = lookup.grid.query(moved, 1, reach_m)
+    nearest = lookup.nearest(source, rows, moved, reach_m)[:, None]
     index, ok = np.zeros(len(source), dtype=np.int64), np.zeros(len(source), dtype=bool)
     _pick(nearest, rows, target.normals, source.normals, c, s, oriented, index, ok)
     retry = np.flatnonzero((nearest[:, 0] < len(target)) & ~ok[rows])

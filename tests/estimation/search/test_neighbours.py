@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from estimation.errors import EstimationError
-from estimation.search.neighbours import PointGrid
+from estimation.search.neighbours import NearestSince, PointGrid
 
 
 def _distances(points: np.ndarray, queries: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -154,3 +154,70 @@ def test_bad_clouds_are_one_line_errors(points: np.ndarray, cell: float, message
 def test_k_below_one_is_an_error() -> None:
     with pytest.raises(EstimationError, match="k must be at least 1"):
         PointGrid(np.zeros((2, 3))).query(np.zeros((1, 3)), 0, 1.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(1, 400),
+    reach=st.floats(0.02, 0.6),
+    margin=st.floats(0.001, 0.3),
+    step=st.floats(0.0, 0.2),
+)
+def test_the_nearest_since_is_the_grids_nearest_at_every_step(
+    seed: int, n: int, reach: float, margin: float, step: float
+) -> None:
+    """Queries drifting in small and large steps, a different subset asked each time: every
+    answer is the grid's own (index for index, ties included)."""
+    rng = np.random.default_rng(seed)
+    # On a 5 cm lattice, so that equidistant points (ties) are common.
+    points = np.round(rng.uniform(-1.0, 1.0, (n, 3)) / 0.05) * 0.05
+    grid = PointGrid(points)
+    queries = rng.uniform(-1.2, 1.2, (60, 3))
+    memo = NearestSince(grid, len(queries), reach, margin)
+    asked = 0
+    for move in range(12):
+        rows = np.flatnonzero(rng.random(len(queries)) < 0.8)
+        asked += len(rows)
+        np.testing.assert_array_equal(memo.query(rows, queries[rows]),
+                                      grid.query(queries[rows], 1, reach)[:, 0])  # fmt: skip
+        queries = queries + rng.normal(0.0, step if move % 4 else 0.5, queries.shape)
+        if move % 3 == 0:
+            queries[::7] = np.round(queries[::7] / 0.025) * 0.025  # midway between lattice points
+    assert memo.looked_up <= asked
+
+
+def test_the_nearest_since_looks_up_only_the_queries_that_moved_enough() -> None:
+    u = np.arange(0.0, 40.0) * 0.05
+    a, b = np.meshgrid(u, u)
+    wall = np.c_[a.ravel(), np.zeros(a.size), b.ravel()]  # 5 cm apart
+    grid = PointGrid(wall)
+    queries = np.c_[u[5:35] + 0.011, np.full(30, 0.1), np.full(30, 1.013)]
+    rows = np.arange(30)
+    memo = NearestSince(grid, 30, 0.3, 0.05)
+    first = memo.query(rows, queries)
+    assert memo.looked_up == 30
+    # A millimetre: the nearest stays nearest for every query; none is looked up again.
+    np.testing.assert_array_equal(memo.query(rows, queries + np.array([0.001, 0, 0])), first)
+    assert memo.looked_up == 30
+    # Two centimetres along the wall: past the point midway to the next, looked up again.
+    moved = queries + np.array([0.02, 0.0, 0.0])
+    np.testing.assert_array_equal(memo.query(rows, moved), grid.query(moved, 1, 0.3)[:, 0])
+    assert memo.looked_up == 60
+    # Nothing within the reach and the margin: none, and not looked up again while the queries
+    # move less than the margin.
+    away = queries + np.array([0.0, 0.3, 0.0])
+    np.testing.assert_array_equal(memo.query(rows, away), np.full(30, len(wall)))
+    assert memo.looked_up == 90
+    np.testing.assert_array_equal(memo.query(rows, away - np.array([0.0, 0.04, 0.0])),
+                                  np.full(30, len(wall)))  # fmt: skip
+    assert memo.looked_up == 90
+    # Exactly midway between two points: a tie, looked up each time.
+    tie = np.array([[0.025, 0.1, 1.013]])
+    memo.query(np.array([0]), tie)
+    memo.query(np.array([0]), tie)
+    assert memo.looked_up == 92
+    with pytest.raises(EstimationError, match="margin"):
+        NearestSince(grid, 3, 0.3, 0.0)
+    with pytest.raises(EstimationError, match="reach"):
+        NearestSince(grid, 3, -0.1, 0.05)
