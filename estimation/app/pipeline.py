@@ -11,9 +11,11 @@ result folder (docs/results.md). What flows between the steps are named frozen v
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,18 +29,18 @@ from estimation.app.dataset import (
     Dataset,
     RobotStream,
     Sweep,
-    decode_robot,
+    decode_dwells,
     load_dataset,
     mapping_sweeps,
     read_pose_stamps,
     relocalization_dwells,
     stations,
-    with_dwell_sweeps,
 )
 from estimation.app.events import Counts, build_events
 from estimation.app.memory import give_back_memory
 from estimation.app.results import BatchOutput, figure_worker, write_results
 from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
+from estimation.app.workers import shared_jobs, spawn_worker
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
@@ -119,40 +121,66 @@ def prepare(
     """Read a dataset: decode every robot's capture, then build the event stream."""
     clock = time.perf_counter()
     dataset = load_dataset(dataset_dir, overrides)
-    decode = sweeps = 0.0
-    streams: dict[str, RobotStream] = {}
     scanner = dataset.config.scanner
     limits = scan_limits(dataset.config)
     for robot in dataset.robots:  # a malformed odometry fails now, not after the decoding
         dataset.odometry(robot)
-    for robot in dataset.robots:
-        if progress is not None:
-            progress(f"decoding robot {robot}")
-        capture = dataset.path / "robots" / robot / "lms.cap"
+    captures = [dataset.path / "robots" / robot / "lms.cap" for robot in dataset.robots]
+    for capture in captures:
         if not CaptureReader(capture).is_capture:
             # Its scans have no receive stamps, so no dwell could ever select one.
             raise SensorError(f"{capture}: a plain binary dump (no capture header): a mission "
                               "needs receive stamps (docs/dataset.md)")  # fmt: skip
-        decoded = decode_robot(capture, scanner.measuring_mode, limits)
-        decode += time.perf_counter() - clock
-        clock = time.perf_counter()
-        # The sweeps hold what the estimator needs: one robot's scans at a time are in memory
-        # (about 3.4 kB each, 38,000 per robot in office_loop), and only their counts are kept.
-        streams[robot] = with_dwell_sweeps(decoded, dataset.events, dataset.config)
-        del decoded
-        sweeps += time.perf_counter() - clock
-        clock = time.perf_counter()
+    if progress is not None:
+        progress(f"decoding {len(captures)} robots' scans")
+    # One robot's scans at a time are in memory on each side (about 3.4 kB each, 38,000 per
+    # robot in office_loop); the sweeps hold what the estimator needs.
+    jobs = [functools.partial(decode_dwells, capture, scanner.measuring_mode, limits,
+                              dataset.events, dataset.config) for capture in captures]  # fmt: skip
+    with decoding_worker(captures) as worker:
+        made = shared_jobs([], jobs, worker)
+    streams = {robot: stream for robot, (stream, _, _) in zip(dataset.robots, made, strict=True)}
+    # The robots are decoded side by side: the wall time is split between the steps as the
+    # robots' own times are.
+    decoding = time.perf_counter() - clock
+    decoded, swept = sum(m[1] for m in made), sum(m[2] for m in made)
+    decode = decoding * decoded / max(decoded + swept, 1e-9)
+    clock = time.perf_counter()
     stream = build_events(dataset, streams, progress)
     if not stream.sweeps:
         why = "; ".join(stream.counts.missing_sweeps[:3]) or "the dataset has no dwells"
         raise EstimationError(f"{dataset.path}: no sweep in any dwell ({why})")
-    timings = Timings(decode=decode, sweeps_and_beacons=sweeps + time.perf_counter() - clock)
+    swept_s = decoding - decode + time.perf_counter() - clock
+    timings = Timings(decode=decode, sweeps_and_beacons=swept_s)
     # The events hold the sweeps' points; the streams keep their counts.
     streams = {r: dataclasses.replace(s, dwell_sweeps={}) for r, s in streams.items()}
     give_back_memory()  # the decoded scans, the sweeps' other fields
     return Prepared(
         dataset, streams, stream.events, stream.sweeps, stream.counts, stream.builder, timings
     )
+
+
+#: Captures holding this much in all (bytes) are decoded by this process and a worker side by
+#: side: about five seconds of decoding on one core, of which the worker's start (importing the
+#: decoder, about a second) is a small part.
+DECODE_WORKER_BYTES = 32 * 2**20
+
+
+@contextlib.contextmanager
+def decoding_worker(captures: list[Path]) -> Iterator[ProcessPoolExecutor | None]:
+    """A worker process that decodes robots beside this one when the captures are large enough
+    (else None), shut down on exit."""
+    size = sum(c.stat().st_size for c in captures if c.is_file())
+    worker = (
+        spawn_worker(["estimation.app.dataset"])
+        if len(captures) > 1 and size >= DECODE_WORKER_BYTES
+        else None
+    )
+    try:
+        yield worker
+    finally:
+        if worker is not None:
+            worker.shutdown(wait=True, cancel_futures=True)
 
 
 def _connected(factors: list[FactorSpec], root: int) -> set[int]:

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -342,7 +342,14 @@ class Scan3D:
     scans: int
 
     def __len__(self) -> int:
-        return len(self.range_m)
+        return len(self.points_scanner)
+
+    def trimmed(self) -> Scan3D:
+        """The sweep with its points and reflector marks only (the other per-point fields
+        empty): what the estimator keeps of a dwell's sweep, 43 % of its memory."""
+        empty = np.zeros(0)
+        return replace(self, range_m=empty, bearing_rad=empty, elevation_rad=empty,
+                       flags=np.zeros(0, np.uint8), stamp_s=empty)  # fmt: skip
 
 
 def assemble_sweeps(

@@ -13,6 +13,7 @@ from estimation.app.dataset import (
     DWELL_SETTLE_S,
     LmsDecoder,
     RobotStream,
+    decode_dwells,
     decode_robot,
     load_dataset,
     sweep_in,
@@ -248,7 +249,32 @@ def test_a_stream_holding_its_dwells_sweeps_gives_the_sweeps_its_scans_gave(
         if made is not None and expected is not None:
             np.testing.assert_array_equal(made.points_scanner, expected.points_scanner)
             np.testing.assert_array_equal(made.reflector, expected.reflector)
+            assert len(made) == len(expected)
+            assert made.range_m.size == made.stamp_s.size == made.flags.size == 0  # trimmed
+            assert (made.start_s, made.end_s, made.scans) == (
+                expected.start_s, expected.end_s, expected.scans
+            )  # fmt: skip
     # A dwell it does not hold is made from the scans it holds (none now): no sweep, and why.
     number, entry = dwells[0]
     empty = with_dwell_sweeps(stream, [], dataset.config)
     assert empty.sweep_of(number, entry, dataset.config) == (None, "only 0 scans in the dwell")
+
+
+def test_decoding_a_robots_dwells_is_decoding_then_keeping_the_sweeps(
+    essex_simulated: Path,
+) -> None:
+    dataset = load_dataset(essex_simulated)
+    capture = essex_simulated / "robots" / "b" / "lms.cap"
+    mode = dataset.config.scanner.measuring_mode
+    stream, decode_s, sweeps_s = decode_dwells(capture, mode, None, dataset.events, dataset.config)
+    held = with_dwell_sweeps(decode_robot(capture, mode), dataset.events, dataset.config)
+    assert decode_s > 0.0
+    assert sweeps_s > 0.0
+    assert stream.telegrams == held.telegrams > 0
+    assert sorted(stream.dwell_sweeps) == sorted(held.dwell_sweeps)
+    for number, (sweep, why) in held.dwell_sweeps.items():
+        other, other_why = stream.dwell_sweeps[number]
+        assert other_why == why
+        if sweep is not None:
+            assert other is not None
+            np.testing.assert_array_equal(other.points_scanner, sweep.points_scanner)

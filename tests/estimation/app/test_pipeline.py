@@ -118,6 +118,41 @@ def test_evaluation_meets_the_targets(dataset: Path, result: Path) -> None:
     assert json.loads((result / "metrics.json").read_text()) == json.loads(json.dumps(metrics))
 
 
+def test_robots_decoded_beside_a_worker_are_the_robots_decoded_here(
+    dataset: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimation.app import pipeline
+    from estimation.app.pipeline import prepare
+
+    alone = prepare(dataset, None, None)
+    monkeypatch.setattr(pipeline, "DECODE_WORKER_BYTES", 0)  # a worker for any capture
+    beside = prepare(dataset, None, None)
+    assert [(s.robot, s.index, s.dwell) for s in beside.sweeps] == [
+        (s.robot, s.index, s.dwell) for s in alone.sweeps
+    ]
+    for a, b in zip(alone.sweeps, beside.sweeps, strict=True):
+        np.testing.assert_array_equal(a.points_scanner, b.points_scanner)
+        assert [d.center_scanner.tolist() for d in a.detections] == [
+            d.center_scanner.tolist() for d in b.detections
+        ]
+    assert beside.counts == alone.counts
+    assert {r: s.telegrams for r, s in beside.streams.items()} == {
+        r: s.telegrams for r, s in alone.streams.items()
+    }
+    # A capture that fails in the worker (the last robot's: the worker takes from the back)
+    # fails the run with the error it fails with here.
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result"))
+    capture = copy / "robots" / "b" / "lms.cap"
+    data = capture.read_bytes()
+    capture.write_bytes(data[: data.index(b"\n", data.index(b"\n") + 1) + 1])  # no records
+    with pytest.raises(SensorError, match="no measured values in the capture"):
+        prepare(copy, None, None)
+    monkeypatch.setattr(pipeline, "DECODE_WORKER_BYTES", 2**62)
+    with pytest.raises(SensorError, match="no measured values in the capture"):
+        prepare(copy, None, None)
+
+
 def test_garbage_in_a_capture_is_counted_not_fatal(dataset: Path, tmp_path: Path) -> None:
     copy = tmp_path / "copy"
     shutil.copytree(dataset, copy, ignore=shutil.ignore_patterns("result"))

@@ -207,7 +207,8 @@ def test_figures_drawn_beside_a_worker_equal_those_drawn_alone(
         shared = write_figures(output, ceiling, tmp_path / "shared", worker)
     assert shared == alone
     names = sorted(p.name for p in (tmp_path / "alone").iterdir())
-    assert len(names) == 3 + len(alone["pdfs"]) and len(alone["pdfs"]) == 2
+    assert len(names) == 3 + len(alone["pdfs"])
+    assert len(alone["pdfs"]) == 2
     assert sorted(p.name for p in (tmp_path / "shared").iterdir()) == names
     for name in names:
         assert (tmp_path / "shared" / name).read_bytes() == (tmp_path / "alone" / name).read_bytes()

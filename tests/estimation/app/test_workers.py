@@ -38,7 +38,8 @@ def test_jobs_are_shared_and_come_back_in_order() -> None:
     theirs = [k for k, pid in results if pid != os.getpid()]
     ours = [k for k, pid in results[1:] if pid == os.getpid()]
     # The worker takes from the back, this process from the front, and each some.
-    assert theirs and ours
+    assert theirs
+    assert ours
     assert max(ours) < min(theirs)
     assert theirs[-1] == 7
 

@@ -147,6 +147,16 @@ def test_simulated_sweep_to_3d_points_matches_ray_cast_truth(essex_scene: Raycas
         assert (np.abs(sweep.elevation_rad) <= math.pi / 2 + 1e-9).all()
         assert len(sweep) > 10_000
         assert sweep.end_s - sweep.start_s == pytest.approx(10.0, abs=0.3)
+        trimmed = sweep.trimmed()  # points and reflector marks only
+        assert trimmed.points_scanner is sweep.points_scanner
+        assert trimmed.reflector is sweep.reflector
+        assert len(trimmed) == len(sweep)
+        for name in ("range_m", "bearing_rad", "elevation_rad", "flags", "stamp_s"):
+            assert getattr(trimmed, name).size == 0
+            assert getattr(trimmed, name).dtype == getattr(sweep, name).dtype
+        assert (trimmed.start_s, trimmed.end_s, trimmed.scans) == (
+            sweep.start_s, sweep.end_s, sweep.scans
+        )  # fmt: skip
 
 
 def test_motor_rate_within_half_a_percent_with_a_tenth_of_the_edges_dropped(
