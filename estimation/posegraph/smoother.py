@@ -90,6 +90,10 @@ class BatchResult:
         return [int(i) for i in np.flatnonzero(~self.inliers)]
 
 
+#: Relative and absolute error tolerance of LM within a GNC step (GTSAM's default).
+_GNC_STEP_TOLERANCE = 1e-5
+
+
 def _lm_params(max_iterations: int) -> gtsam.LevenbergMarquardtParams:
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
@@ -227,7 +231,14 @@ def _gnc(
     """GNC with the TLS loss, the ``known`` factors held as inliers; the dropped factors that
     agree with the rest readmitted (:func:`_readmit`), the inliers polished by LM. Returns the
     estimate and the inliers."""
-    params = gtsam.GncLMParams(_lm_params(max_iterations))
+    # Each of GNC's steps (tens of them) solves with the weights of that step only to hand the
+    # next step a start: to GTSAM's default tolerance, not to the polish's (a 32-room mission's
+    # first stage, 342 poses: 6.1 s → 2.3 s, the same inliers, the polished poses 0.4 mm apart
+    # at equal graph error).
+    inner = _lm_params(max_iterations)
+    inner.setRelativeErrorTol(_GNC_STEP_TOLERANCE)
+    inner.setAbsoluteErrorTol(_GNC_STEP_TOLERANCE)
+    params = gtsam.GncLMParams(inner)
     params.setLossType(gtsam.GncLossType.TLS)
     params.setKnownInliers([int(i) for i in np.flatnonzero(known)])
     optimizer = gtsam.GncLMOptimizer(graph, values, params)

@@ -169,6 +169,22 @@ def test_gnc_with_10_percent_gross_outliers_on_2000_poses() -> None:
     assert ate(as_array(plain.estimate, keys), truth, align=False).rmse_m > 0.5
 
 
+def test_gnc_steps_solved_to_the_default_tolerance_find_what_tight_steps_find(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """GNC's steps only hand the next step a start; the inliers are polished to 1e-10 after."""
+    settings = GraphSettings(prediction_gate_probability=None)
+    dirty = leapfrog(60, 5, seed=11, settings=settings, outlier_fraction=0.15)
+    builder = build(dirty.events, settings)
+    loose = optimize_batch(builder.factors, builder.initial_values(), "gnc_tls")
+    monkeypatch.setattr(smoother_module, "_GNC_STEP_TOLERANCE", 1e-10)
+    tight = optimize_batch(builder.factors, builder.initial_values(), "gnc_tls")
+    assert len(tight.outliers) >= 3
+    np.testing.assert_array_equal(loose.inliers, tight.inliers)
+    assert loose.error == pytest.approx(tight.error, rel=1e-6)
+    assert_same_estimate(loose.estimate, tight.estimate)
+
+
 COALITION = Path(__file__).parent / "data" / "gnc_coalition.npz"
 
 
