@@ -240,88 +240,84 @@ def _finish(
     the mission's search records, for the figures of their PDFs; ``figures`` False: none drawn).
     The figures' worker process starts first: its imports run while this one fuses the map."""
     with figure_worker(figures) as worker:
-        return _fuse_and_write(prepared, solution, timings, out, extra, searches, figures, worker)
-
-
-def _fuse_and_write(
-    prepared: Prepared,
-    solution: Solution,
-    timings: Timings,
-    out: Path,
-    extra: dict[str, Any],
-    searches: list[SearchRecord],
-    figures: bool,
-    worker: ProcessPoolExecutor | None,
-) -> BatchOutput:
-    dataset = prepared.dataset
-    config = dataset.config
-    clock = time.perf_counter()
-    poses: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
-    for key, pose in solution.estimate.items():
-        robot, index = split_key(key)
-        poses[robot][index] = pose
-    used = [s for s in mapping_sweeps(dataset, prepared.sweeps) if s.index in poses[s.robot]]
-    mount = T_robot_scanner(config)
-    transforms = (
-        np.stack([pose2_matrix(*poses[s.robot][s.index]) @ mount for s in used])
-        if used
-        else np.zeros((0, 4, 4))
-    )
-    grid = fuse_scans(
-        [MapScan(s.points_scanner) for s in used],
-        transforms,
-        GridParams(**config.grid.model_dump()),
-    )
-    timings = dataclasses.replace(timings, fusion=time.perf_counter() - clock)
-    stamps = read_pose_stamps(dataset)
-    covariances: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
-    kept = [f for f, inlier in zip(solution.factors, solution.inliers, strict=True) if inlier]
-    try:
-        for key, covariance in marginal_covariances(kept, solution.estimate).items():
+        dataset = prepared.dataset
+        config = dataset.config
+        clock = time.perf_counter()
+        poses: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
+        for key, pose in solution.estimate.items():
             robot, index = split_key(key)
-            covariances[robot][index] = covariance
-    except EstimationError as exc:
-        extra = {**extra, "covariances": f"not written: {exc}"}
-    builder, factors, inliers, counts = (
-        solution.builder, solution.factors, solution.inliers, prepared.counts
-    )  # fmt: skip
-    report = {
-        "coopmap": __version__,
-        "dataset": str(dataset.path),
-        "robots": {
-            r: {
-                "telegrams": prepared.streams[r].telegrams,
-                "undecodable": prepared.streams[r].undecodable,
-                "checksum_failures": prepared.streams[r].checksum_failures,
-                "bytes_skipped": prepared.streams[r].bytes_skipped,
-                "truncated_bytes": prepared.streams[r].truncated_bytes,
-                "corrupt_bytes": prepared.streams[r].corrupt_bytes,
-                "implausible_scans": prepared.streams[r].implausible_scans,
-                "implausible": prepared.streams[r].implausible,
-                "poses": len(poses[r]),
-            }
-            for r in dataset.robots
-        },
-        "dwells": counts.dwells,
-        "sweeps": len(prepared.sweeps),
-        "missing_sweeps": list(counts.missing_sweeps),
-        "observations": counts.observations,
-        "unseen_pairs": list(counts.unseen),
-        "gate_rejections": [r.reason for r in builder.rejections],
-        "mutual_observations": _observation_rows(builder, factors, inliers),
-        "factors": len(factors),
-        "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
-        "dropped_poses": [key_label(k) for k in solution.dropped],
-        "stations_without_mutual": unobserved_stations(prepared, factors),
-        "partial_mission": dataset.partial,
-        "timings_s": timings.as_json(),
-        **extra,
-    }
-    output = BatchOutput(
-        out, poses, stamps, prepared.sweeps, factors, inliers, grid, report, covariances, searches
-    )
-    write_results(output, config, figures=figures, worker=worker)
-    return output
+            poses[robot][index] = pose
+        used = [s for s in mapping_sweeps(dataset, prepared.sweeps) if s.index in poses[s.robot]]
+        mount = T_robot_scanner(config)
+        transforms = (
+            np.stack([pose2_matrix(*poses[s.robot][s.index]) @ mount for s in used])
+            if used
+            else np.zeros((0, 4, 4))
+        )
+        grid = fuse_scans(
+            [MapScan(s.points_scanner) for s in used],
+            transforms,
+            GridParams(**config.grid.model_dump()),
+        )
+        timings = dataclasses.replace(timings, fusion=time.perf_counter() - clock)
+        stamps = read_pose_stamps(dataset)
+        covariances: dict[str, dict[int, np.ndarray]] = {r: {} for r in dataset.robots}
+        kept = [f for f, inlier in zip(solution.factors, solution.inliers, strict=True) if inlier]
+        try:
+            for key, covariance in marginal_covariances(kept, solution.estimate).items():
+                robot, index = split_key(key)
+                covariances[robot][index] = covariance
+        except EstimationError as exc:
+            extra = {**extra, "covariances": f"not written: {exc}"}
+        builder, factors, inliers, counts = (
+            solution.builder, solution.factors, solution.inliers, prepared.counts
+        )  # fmt: skip
+        report = {
+            "coopmap": __version__,
+            "dataset": str(dataset.path),
+            "robots": {
+                r: {
+                    "telegrams": prepared.streams[r].telegrams,
+                    "undecodable": prepared.streams[r].undecodable,
+                    "checksum_failures": prepared.streams[r].checksum_failures,
+                    "bytes_skipped": prepared.streams[r].bytes_skipped,
+                    "truncated_bytes": prepared.streams[r].truncated_bytes,
+                    "corrupt_bytes": prepared.streams[r].corrupt_bytes,
+                    "implausible_scans": prepared.streams[r].implausible_scans,
+                    "implausible": prepared.streams[r].implausible,
+                    "poses": len(poses[r]),
+                }
+                for r in dataset.robots
+            },
+            "dwells": counts.dwells,
+            "sweeps": len(prepared.sweeps),
+            "missing_sweeps": list(counts.missing_sweeps),
+            "observations": counts.observations,
+            "unseen_pairs": list(counts.unseen),
+            "gate_rejections": [r.reason for r in builder.rejections],
+            "mutual_observations": _observation_rows(builder, factors, inliers),
+            "factors": len(factors),
+            "outlier_factors": [factors[i].describe() for i in np.flatnonzero(~inliers)],
+            "dropped_poses": [key_label(k) for k in solution.dropped],
+            "stations_without_mutual": unobserved_stations(prepared, factors),
+            "partial_mission": dataset.partial,
+            "timings_s": timings.as_json(),
+            **extra,
+        }
+        output = BatchOutput(
+            out,
+            poses,
+            stamps,
+            prepared.sweeps,
+            factors,
+            inliers,
+            grid,
+            report,
+            covariances,
+            searches,
+        )
+        write_results(output, config, figures=figures, worker=worker)
+        return output
 
 
 def unobserved_stations(prepared: Prepared, factors: list[FactorSpec]) -> list[dict[str, Any]]:
