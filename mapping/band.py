@@ -156,15 +156,13 @@ def extract_band(
         if np.any(hi_ij < lo_ij):
             raise MapError(f"empty rectangle: lower {lower_xy}, upper {upper_xy}")
     cols, rows = (hi_ij - lo_ij + 1).tolist()
-    counts = np.zeros((rows, cols), dtype=np.int64)
     ij = cells[:, :2] - lo_ij
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < cols) & (ij[:, 1] >= 0) & (ij[:, 1] < rows)
     ij, values = ij[inside], values[inside]
     level = grid.params.logodds_threshold if threshold is None else float(logodds(threshold))
     occupied = values > level
-    np.add.at(counts, (ij[occupied, 1], ij[occupied, 0]), 1)
-    observed = np.zeros((rows, cols), dtype=np.int64)
-    np.add.at(observed, (ij[:, 1], ij[:, 0]), 1)
+    counts = _per_cell(ij[occupied, 1], ij[occupied, 0], (rows, cols))
+    observed = _per_cell(ij[:, 1], ij[:, 0], (rows, cols))
     known = (counts > 0) | ((observed > 0) & (observed >= free_min_observed * layers))
     return Band(
         occupancy=counts / layers,
@@ -172,6 +170,13 @@ def extract_band(
         lower_xy=origin[:2] + lo_ij * res,
         resolution_m=res,
     )
+
+
+def _per_cell(rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) int64: how many of the (row, col) pairs fall on each cell (``np.add.at``'s
+    counts, by ``np.bincount``: several times faster)."""
+    flat = np.bincount(rows * shape[1] + cols, minlength=shape[0] * shape[1])
+    return flat.reshape(shape).astype(np.int64, copy=False)
 
 
 @dataclass(frozen=True)
@@ -271,10 +276,8 @@ def extract_ceiling_band(
     r, c, k = ij[inside, 1], ij[inside, 0], cells[inside, 2]
     in_band = (k >= first[r, c]) & (k <= last[r, c])
     r, c, occ = r[in_band], c[in_band], occupied[inside][in_band]
-    counts = np.zeros((rows, cols), dtype=np.int64)
-    np.add.at(counts, (r[occ], c[occ]), 1)
-    observed = np.zeros((rows, cols), dtype=np.int64)
-    np.add.at(observed, (r, c), 1)
+    counts = _per_cell(r[occ], c[occ], (rows, cols))
+    observed = _per_cell(r, c, (rows, cols))
     depth = (last - first + 1).astype(np.float64)
     known = (counts > 0) | ((observed > 0) & (observed >= free_min_observed * depth))
     band = Band(counts / depth, known, origin[:2] + lo_ij * res, res)
