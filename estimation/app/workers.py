@@ -1,12 +1,12 @@
-"""Worker processes beside a command (docs/design.md §12): spawned, never forked — the command's
-process runs GTSAM's and numba's thread pools, which a fork would copy mid-flight — and gone
-when their parent is.
+"""Worker processes beside a command (docs/design.md §6, "Worker processes"): spawned, never
+forked — the command's process runs GTSAM's and numba's thread pools, which a fork would copy
+mid-flight — and gone when their parent is.
 
 :func:`shared_jobs` splits a list of independent jobs between this process and one worker: the
 worker takes them from the back, this process from the front, and a job the worker has not yet
-started when this process reaches it is done here. A result's figures are drawn this way (most
-of a figure's time is matplotlib laying out text, which holds the interpreter), side by side on
-the machine's two cores.
+started when this process reaches it is done here. ``batch`` and ``isam`` decode large captures
+this way (each robot's decoding and sweeps are one job) and draw a result's figures (most of a
+figure's time is matplotlib laying out text, which holds the interpreter).
 """
 
 from __future__ import annotations
@@ -84,10 +84,11 @@ def shared_jobs(
         assert worker is not None
         while (k := take(back=True)) is not None:
             try:
-                done[k] = (True, worker.submit(shared[k]).result())
-            except (BrokenProcessPool, RuntimeError):
+                future = worker.submit(shared[k])
+                done[k] = (True, future.result())
+            except BrokenProcessPool:  # the worker died, or never started: this process runs it
                 with lock:
-                    pending.append(k)  # this process runs it
+                    pending.append(k)
                 return
             except BaseException as exc:  # the job's own error, raised in order below
                 done[k] = (False, exc)
