@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from estimation.app.config import Config, ConfigError, config_from_mapping
-from estimation.app.rig import mirror_geometry
+from estimation.app.rig import beacon_parameters, mirror_geometry
 from estimation.search.stations import Dwell, Station, View
 from sensors.errors import SensorError
 from sensors.lms200.capture import CaptureReader, CaptureStream
@@ -27,7 +27,7 @@ from sensors.lms200.decoder import ScanDecoder
 from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.lms200.protocol.scan import Scan
 from sensors.lms200.protocol.telegram import BAUD_RATES
-from sensors.scan3d.beacon import BeaconDetection
+from sensors.scan3d.beacon import BeaconDetection, detect_beacons
 from sensors.scan3d.mirror import Scan3D, ScanClock, assemble_sweeps, estimate_mirror
 from sensors.trajio import read_tum
 from sensors.yamlio import merge_mappings, read_text_file, read_yaml_mapping
@@ -284,6 +284,8 @@ class RobotStream:
     # The sweep (or why none) of each dwell, by its number in the event log, made while the
     # scans were at hand (:func:`with_dwell_sweeps`); a dwell not in it is made from the scans.
     dwell_sweeps: dict[int, tuple[Scan3D | None, str | None]] = field(default_factory=dict)
+    # The beacons found in each of those sweeps, found as it was made (in the decoding's job).
+    dwell_beacons: dict[int, list[BeaconDetection]] = field(default_factory=dict)
 
     @property
     def implausible_scans(self) -> int:
@@ -389,16 +391,20 @@ def decode_robot(
 
 def with_dwell_sweeps(stream: RobotStream, events: list[dict[str, Any]],
                       config: Config) -> RobotStream:  # fmt: skip
-    """``stream`` holding the sweep of every dwell of the event log instead of its scans: what
-    the estimator takes of a decoded capture (office_loop, per robot: 75 sweeps of points and
-    reflector marks (:meth:`~sensors.scan3d.mirror.Scan3D.trimmed`), 21 MB, instead of 38,000
-    scans, 130 MB). ``sweep_of`` gives the same sweeps, trimmed, as from the scans."""
-    sweeps = {}
+    """``stream`` holding the sweep of every dwell of the event log, and the beacons found in
+    it, instead of its scans: what the estimator takes of a decoded capture (office_loop, per
+    robot: 75 sweeps of points and reflector marks (:meth:`~sensors.scan3d.mirror.Scan3D.trimmed`),
+    21 MB, instead of 38,000 scans, 130 MB). ``sweep_of`` gives the same sweeps, trimmed, as
+    from the scans; the beacons are those the event stream would find in them."""
+    sweeps, beacons, params = {}, {}, beacon_parameters(config)
     for n, entry in enumerate(events):
         if entry["event"] == "dwell":
             sweep, why = stream.sweep_of(n, entry, config)
             sweeps[n] = (None if sweep is None else sweep.trimmed(), why)
-    return replace(stream, scans=[], times_s=stream.times_s[:0], dwell_sweeps=sweeps)
+            if sweep is not None:
+                beacons[n] = detect_beacons(sweep.points_scanner, sweep.reflector, **params)[0]
+    return replace(stream, scans=[], times_s=stream.times_s[:0], dwell_sweeps=sweeps,
+                   dwell_beacons=beacons)  # fmt: skip
 
 
 def decode_dwells(

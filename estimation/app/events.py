@@ -157,7 +157,9 @@ class EventMaker:
             if scan is None:
                 self.missing.append(f"{robot}{index} (dwell {number}): {why}")
                 continue
-            detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **self.params)
+            detections = streams[robot].dwell_beacons.get(number)
+            if detections is None:  # not found when the sweep was made
+                detections, _ = detect_beacons(scan.points_scanner, scan.reflector, **self.params)
             sweep = Sweep(robot, index, number, scan.points_scanner, detections)
             self.sweeps.append(sweep)
             in_dwell[robot] = sweep

@@ -153,7 +153,8 @@ def prepare(
     swept_s = decoding - decode + time.perf_counter() - clock
     timings = Timings(decode=decode, sweeps_and_beacons=swept_s)
     # The events hold the sweeps' points; the streams keep their counts.
-    streams = {r: dataclasses.replace(s, dwell_sweeps={}) for r, s in streams.items()}
+    streams = {r: dataclasses.replace(s, dwell_sweeps={}, dwell_beacons={})
+               for r, s in streams.items()}  # fmt: skip
     give_back_memory()  # the decoded scans, the sweeps' other fields
     return Prepared(
         dataset, streams, stream.events, stream.sweeps, stream.counts, stream.builder, timings

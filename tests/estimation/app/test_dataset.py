@@ -19,11 +19,13 @@ from estimation.app.dataset import (
     sweep_in,
     with_dwell_sweeps,
 )
+from estimation.app.rig import beacon_parameters
 from sensors.errors import SensorError
 from sensors.lms200.capture import CaptureReader, CaptureWriter
 from sensors.lms200.protocol.plausibility import ScanLimits
 from sensors.lms200.protocol.scan import encode_scan, scan_interval_s
 from sensors.lms200.protocol.telegram import TURN_S
+from sensors.scan3d.beacon import detect_beacons
 
 LIMITS = ScanLimits.for_variant(100, 1.0, unit_mm=True, baud_rate=38400)
 
@@ -254,6 +256,16 @@ def test_a_stream_holding_its_dwells_sweeps_gives_the_sweeps_its_scans_gave(
             assert (made.start_s, made.end_s, made.scans) == (
                 expected.start_s, expected.end_s, expected.scans
             )  # fmt: skip
+            # The beacons found as the sweep was made, as the event stream would find them.
+            found, _ = detect_beacons(expected.points_scanner, expected.reflector,
+                                      **beacon_parameters(dataset.config))  # fmt: skip
+            held_found = held.dwell_beacons[number]
+            assert [d.center_scanner.tolist() for d in held_found] == [
+                d.center_scanner.tolist() for d in found
+            ]
+        else:
+            assert number not in held.dwell_beacons
+    assert any(held.dwell_beacons.values())  # essex_lab's robots see each other
     # A dwell it does not hold is made from the scans it holds (none now): no sweep, and why.
     number, entry = dwells[0]
     empty = with_dwell_sweeps(stream, [], dataset.config)

@@ -136,6 +136,7 @@ def test_robots_decoded_beside_a_worker_are_the_robots_decoded_here(
             d.center_scanner.tolist() for d in b.detections
         ]
     assert beside.counts == alone.counts
+    assert sum(len(s.detections) for s in alone.sweeps) > 0
     assert {r: s.telegrams for r, s in beside.streams.items()} == {
         r: s.telegrams for r, s in alone.streams.items()
     }
@@ -151,6 +152,23 @@ def test_robots_decoded_beside_a_worker_are_the_robots_decoded_here(
     monkeypatch.setattr(pipeline, "DECODE_WORKER_BYTES", 2**62)
     with pytest.raises(SensorError, match="no measured values in the capture"):
         prepare(copy, None, None)
+
+
+def test_the_event_stream_takes_the_beacons_found_as_the_sweeps_were_made(
+    dataset: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from estimation.app import events
+    from estimation.app.pipeline import prepare
+
+    alone = prepare(dataset, None, None)
+
+    def refused(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the event stream looked for beacons again")
+
+    monkeypatch.setattr(events, "detect_beacons", refused)
+    again = prepare(dataset, None, None)
+    assert [len(s.detections) for s in again.sweeps] == [len(s.detections) for s in alone.sweeps]
+    assert again.counts == alone.counts
 
 
 def test_garbage_in_a_capture_is_counted_not_fatal(dataset: Path, tmp_path: Path) -> None:
