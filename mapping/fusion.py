@@ -48,13 +48,20 @@ def check_rigid(T: np.ndarray, name: str = "T", tolerance: float = 1e-6) -> np.n
     if not np.all(np.isfinite(T)):
         raise MapError(f"{name} has non-finite entries")
     R = T[:3, :3]
+    # np.allclose's test (|a − b| ≤ atol + 1e-5 |b|) and the determinant's sign, written out: a
+    # fusion checks every scan's pose, and np.allclose took 30 µs a call.
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
     if (
-        not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance)
-        or not np.allclose(R.T @ R, np.eye(3), atol=tolerance)
-        or np.linalg.det(R) < 0
+        not np.all(np.abs(T[3] - _BOTTOM) <= tolerance + 1e-5 * _BOTTOM)
+        or not np.all(np.abs(R.T @ R - _EYE) <= tolerance + 1e-5 * _EYE)
+        or a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) < 0
     ):
         raise MapError(f"{name} is not a rigid transform (rotation and translation)")
     return T
+
+
+_BOTTOM = np.array([0.0, 0.0, 0.0, 1.0])
+_EYE = np.eye(3)
 
 
 def fuse_scans(
@@ -91,19 +98,19 @@ def fuse_scans(
         no_return = scan.no_return_scanner @ R.T if len(scan.no_return_scanner) else None
         points = scan.points_scanner @ R.T + t
         if z_slab is not None:
-            points = points[rays_into_slab(points, t, *z_slab)]
+            cast = rays_into_slab(points[:, 2], float(t[2]), *z_slab)
+            points = points[cast | ~np.isfinite(points).all(axis=1)]  # the grid refuses those
         grid.integrate_scan(points, t, no_return, threads=threads)
     return grid
 
 
-def rays_into_slab(points: np.ndarray, origin: np.ndarray, low_m: float,
+def rays_into_slab(heights: np.ndarray, origin_z_m: float, low_m: float,
                    high_m: float) -> np.ndarray:  # fmt: skip
-    """(N,) bool: which rays from ``origin`` (3,) to ``points`` (N, 3) reach heights in
-    [``low_m``, ``high_m``]; true for a point that is not finite (the grid refuses it, as it
-    would without the slab)."""
-    z = points[:, 2]
-    top, bottom = np.maximum(z, origin[2]), np.minimum(z, origin[2])
-    return np.asarray(((top >= low_m) & (bottom <= high_m)) | ~np.isfinite(points).all(axis=1))
+    """(N,) bool: which rays from a scanner at height ``origin_z_m`` to points at ``heights``
+    (N,) reach heights in [``low_m``, ``high_m``]; true for a height that is not finite (the
+    grid refuses its point, as it would without the slab)."""
+    top, bottom = np.maximum(heights, origin_z_m), np.minimum(heights, origin_z_m)
+    return np.asarray(((top >= low_m) & (bottom <= high_m)) | ~np.isfinite(heights))
 
 
 def merge_grids(grids: Sequence[OccupancyGrid]) -> OccupancyGrid:

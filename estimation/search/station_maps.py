@@ -220,8 +220,8 @@ def fuse_views(
     its cells are the same. Returns the grid and the rays cast."""
     transforms = _T_frame_scanner(views, frame, estimate, params)
     slab = band_slab(params, which) if which is not None else None
-    scans = [MapScan(v.points_scanner if slab is None else v.points_scanner[
-        rays_into_slab(v.points_scanner @ T[:3, :3].T + T[:3, 3], T[:3, 3], *slab)
+    scans = [MapScan(v.points_scanner if slab is None else v.points_scanner[  # heights only
+        rays_into_slab(v.points_scanner @ T[2, :3] + T[2, 3], float(T[2, 3]), *slab)
     ]) for v, T in zip(views, transforms, strict=True)]  # fmt: skip
     grid = fuse_scans(scans, transforms, params.grid, grid)
     return grid, sum(len(scan.points_scanner) for scan in scans)

@@ -125,6 +125,9 @@ def test_merging_needs_one_lattice() -> None:
         (np.diag([2.0, 1.0, 1.0, 1.0]), "is not a rigid transform"),
         (np.diag([-1.0, 1.0, 1.0, 1.0]), "is not a rigid transform"),
         (np.full((4, 4), np.nan), "has non-finite entries"),
+        (np.diag([1.0, 1.0, 1.0, 1.0 + 2e-5]), "is not a rigid transform"),  # beyond allclose
+        (np.eye(4) + np.eye(4, k=-3) * 2e-6, "is not a rigid transform"),
+        (np.eye(4)[[1, 0, 2, 3]], "is not a rigid transform"),  # a reflection
     ],
 )
 def test_poses_must_be_rigid(T: np.ndarray, message: str) -> None:
@@ -137,6 +140,15 @@ def test_poses_must_be_rigid(T: np.ndarray, message: str) -> None:
     else:
         with pytest.raises(MapError, match=r"need one 4×4 pose per scan, got .* \(1, 3, 3\)"):
             fuse_scans(scans, [T], GridParams())
+
+
+def test_a_pose_within_np_allclose_of_rigid_is_rigid() -> None:
+    T = pose2_matrix(1.0, 2.0, 0.3, z_m=0.45)
+    off = T + np.eye(4, k=-3) * 0.9e-6  # the bottom row within the absolute tolerance
+    scaled = np.diag([1.0, 1.0, 1.0, 1.0 + 1.05e-5])  # within np.allclose's relative one
+    for pose in (T, off, scaled):
+        assert np.allclose(pose[3], [0, 0, 0, 1], atol=1e-6)
+        np.testing.assert_array_equal(check_rigid(pose), pose)
 
 
 def test_scan_and_pose_lists_must_match() -> None:
@@ -192,7 +204,7 @@ def test_a_slab_fuses_the_bands_cells_as_every_ray_does(band: tuple[float, float
     assert inside
     assert {c: v for c, v in as_dict(some).items() if layers[0] <= c[2] <= layers[1]} == inside
     cast = sum(
-        int(rays_into_slab(s.points_scanner @ T[:3, :3].T + T[:3, 3], T[:3, 3], *slab).sum())
+        int(rays_into_slab(s.points_scanner @ T[2, :3] + T[2, 3], T[2, 3], *slab).sum())
         for s, T in zip(scans, poses, strict=True)
     )
     total = sum(len(s.points_scanner) for s in scans)
@@ -202,21 +214,21 @@ def test_a_slab_fuses_the_bands_cells_as_every_ray_does(band: tuple[float, float
 
 
 def test_rays_into_a_slab_are_those_that_reach_its_heights() -> None:
-    origin = np.array([0.0, 0.0, 0.5])
-    points = np.array([
-        [1.0, 0.0, 3.0],  # up through the slab
-        [1.0, 0.0, 0.0],  # down to the floor: below it
-        [1.0, 0.0, 1.0],  # ends at its bottom
-        [1.0, 0.0, 0.99],  # ends just below
-        [1.0, 0.0, np.nan],  # not a point: kept, for the grid to refuse
-        [np.inf, 0.0, 0.0],
+    heights = np.array([
+        3.0,  # up through the slab
+        0.0,  # down to the floor: below it
+        1.0,  # ends at its bottom
+        0.99,  # ends just below
+        np.nan,  # not a point: kept, for the grid to refuse
     ])  # fmt: skip
-    keep = rays_into_slab(points, origin, 1.0, 2.0)
-    assert keep.tolist() == [True, False, True, False, True, True]
-    above = rays_into_slab(points[:4], np.array([0.0, 0.0, 2.5]), 1.0, 2.0)
-    assert above.tolist() == [False, True, True, True]  # from above it: down through it
-    with pytest.raises(MapError, match="finite"):
-        fuse_scans([Scan(points[:5])], [np.eye(4)], GridParams(), z_slab=(1.0, 2.0))
+    assert rays_into_slab(heights, 0.5, 1.0, 2.0).tolist() == [True, False, True, False, True]
+    # From above it: down through it.
+    assert rays_into_slab(heights[:4], 2.5, 1.0, 2.0).tolist() == [False, True, True, True]
+    # A point that is not finite is cast even where its height lies below the slab: refused.
+    for bad in ([1.0, 0.0, np.nan], [np.nan, 0.0, 0.0]):
+        points = np.array([[1.0, 0.0, 3.0], bad])
+        with pytest.raises(MapError, match="finite"):
+            fuse_scans([Scan(points)], [np.eye(4)], GridParams(), z_slab=(1.0, 2.0))
 
 
 def test_a_bands_slab_spares_a_cell_on_either_side() -> None:

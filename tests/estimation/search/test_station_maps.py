@@ -95,7 +95,7 @@ def cast(view: View) -> int:
     slab = station_maps.band_slab(EXACT, "ceiling")
     assert slab is not None
     points = view.points_scanner @ T[:3, :3].T + T[:3, 3]
-    return int(rays_into_slab(points, T[:3, 3], *slab).sum())
+    return int(rays_into_slab(points[:, 2], T[2, 3], *slab).sum())
 
 
 def moved(estimate: dict[int, np.ndarray], by: np.ndarray) -> dict[int, np.ndarray]:
