@@ -15,7 +15,7 @@ import contextlib
 import dataclasses
 import functools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,7 +40,7 @@ from estimation.app.events import Counts, build_events
 from estimation.app.memory import give_back_memory
 from estimation.app.results import BatchOutput, figure_worker, write_results
 from estimation.app.rig import T_robot_scanner, graph_settings, scan_limits, station_params
-from estimation.app.workers import shared_jobs, spawn_worker
+from estimation.app.workers import shared_jobs, worker_beside
 from estimation.errors import EstimationError
 from estimation.posegraph.events import Event, Localize
 from estimation.posegraph.graph import FactorSpec, GraphBuilder
@@ -167,21 +167,14 @@ def prepare(
 DECODE_WORKER_BYTES = 32 * 2**20
 
 
-@contextlib.contextmanager
-def decoding_worker(captures: list[Path]) -> Iterator[ProcessPoolExecutor | None]:
+def decoding_worker(
+    captures: list[Path],
+) -> contextlib.AbstractContextManager[ProcessPoolExecutor | None]:
     """A worker process that decodes robots beside this one when the captures are large enough
     (else None), shut down on exit."""
     size = sum(c.stat().st_size for c in captures if c.is_file())
-    worker = (
-        spawn_worker(["estimation.app.dataset"])
-        if len(captures) > 1 and size >= DECODE_WORKER_BYTES
-        else None
-    )
-    try:
-        yield worker
-    finally:
-        if worker is not None:
-            worker.shutdown(wait=True, cancel_futures=True)
+    return worker_beside(["estimation.app.dataset"],
+                         len(captures) > 1 and size >= DECODE_WORKER_BYTES)  # fmt: skip
 
 
 def _connected(factors: list[FactorSpec], root: int) -> set[int]:

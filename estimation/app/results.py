@@ -15,7 +15,6 @@ import contextlib
 import functools
 import json
 import math
-from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 from estimation import __version__
 from estimation.app.config import Config, config_to_yaml
 from estimation.app.rig import cut_ceiling_band
-from estimation.app.workers import shared_jobs, spawn_worker
+from estimation.app.workers import shared_jobs, worker_beside
 from estimation.posegraph.keys import key_label, pose_key
 from mapping.errors import MapError
 from mapping.formats.npz import save_map
@@ -115,23 +114,19 @@ FIGURE_IMPORTS = (
 )
 
 
-@contextlib.contextmanager
-def figure_worker(figures: bool = True) -> Iterator[ProcessPoolExecutor | None]:
+def figure_worker(
+    figures: bool = True,
+) -> contextlib.AbstractContextManager[ProcessPoolExecutor | None]:
     """The worker process that draws a result's figures beside this one (None without
     ``figures``), started on entry — its imports take about a second, best spent while this
     process fuses and writes the map — and shut down on exit."""
-    worker = spawn_worker(FIGURE_IMPORTS) if figures else None
-    try:
-        yield worker
-    finally:
-        if worker is not None:
-            worker.shutdown(wait=True, cancel_futures=True)
+    return worker_beside(FIGURE_IMPORTS, figures)
 
 
 def write_results(output: BatchOutput, config: Config, *, figures: bool = True,
                   worker: ProcessPoolExecutor | None = None) -> None:  # fmt: skip
     """The result folder (docs/results.md), replacing an earlier result atomically; without
-    ``figures`` the folder has no ``figures/`` (drawing them is a quarter of ``batch``'s time).
+    ``figures`` the folder has no ``figures/`` (drawing them is a fifth of ``batch``'s time).
     ``worker`` (:func:`figure_worker`): draws figures beside this process."""
     with replace_directory(output.out_dir, "result") as work:
         for robot, poses in output.poses.items():

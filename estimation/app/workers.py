@@ -12,17 +12,18 @@ figure's time is matplotlib laying out text, which holds the interpreter).
 from __future__ import annotations
 
 import collections
+import contextlib
 import importlib
 import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import TypeVar
 
-__all__ = ["shared_jobs", "spawn_worker", "watch_parent"]
+__all__ = ["shared_jobs", "spawn_worker", "watch_parent", "worker_beside"]
 
 T = TypeVar("T")
 
@@ -58,6 +59,20 @@ def spawn_worker(imports: Sequence[str] = ()) -> ProcessPoolExecutor | None:
     except (OSError, RuntimeError):
         return None
     return pool
+
+
+@contextlib.contextmanager
+def worker_beside(
+    imports: Sequence[str], wanted: bool = True
+) -> Iterator[ProcessPoolExecutor | None]:
+    """:func:`spawn_worker` on entry when ``wanted`` (else None), shut down on exit (after the
+    job it is running)."""
+    worker = spawn_worker(imports) if wanted else None
+    try:
+        yield worker
+    finally:
+        if worker is not None:
+            worker.shutdown(wait=True, cancel_futures=True)
 
 
 def shared_jobs(
