@@ -46,8 +46,10 @@ class PointGrid:
             raise EstimationError(f"neighbour grid: cell size must be positive, got {cell_m}")
         self.size = len(points)
         self.points = points  # as given (a view of the caller's array when it is float64)
-        lower = points.min(axis=0) if len(points) else np.zeros(3)
-        span = (points.max(axis=0) - lower) if len(points) else np.zeros(3)
+        lower, upper = np.zeros(3), np.zeros(3)
+        if len(points):
+            _bounds(points, lower, upper)  # points.min(axis=0) and max, 10× faster
+        span = upper - lower
         # Cells of cell_m unless that makes too many; then as many as allowed.
         most = min(max(_CELLS_PER_POINT * len(points), 4096), _MAX_CELLS)
         cell = max(cell_m, float(np.prod(span + cell_m) / most) ** (1.0 / 3.0))
@@ -58,15 +60,11 @@ class PointGrid:
         self.cell_m = cell
         self.lower = lower
         self.dims = dims
-        ijk = np.minimum(np.floor((points - lower) / cell).astype(np.int64), dims - 1)
-        keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-        order = np.argsort(keys, kind="stable")
-        self.sorted = np.ascontiguousarray(points[order])
         # 4-byte indices: 20 of the 64 bytes a point took here with 8-byte ones.
-        self.order = order.astype(np.int32)
-        counts = np.bincount(keys, minlength=int(np.prod(dims)))
-        self.starts = np.zeros(len(counts) + 1, dtype=np.int32)
-        np.cumsum(counts, out=self.starts[1:])
+        self.sorted = np.empty_like(points)
+        self.order = np.empty(len(points), dtype=np.int32)
+        self.starts = np.zeros(int(np.prod(dims)) + 1, dtype=np.int32)
+        _sort_into_cells(points, lower, cell, dims, self.sorted, self.order, self.starts)
 
     def __len__(self) -> int:
         return self.size
@@ -92,6 +90,48 @@ class PointGrid:
             _query(self.sorted, self.order, self.starts, self.lower, self.dims, self.cell_m,
                    queries, float(reach_m), any_one, out)  # fmt: skip
         return out
+
+
+@njit(cache=True, nogil=True)
+def _bounds(points: np.ndarray, lower: np.ndarray, upper: np.ndarray) -> None:
+    """The smallest and largest coordinate of ``points`` (at least one) on each axis."""
+    for a in range(3):
+        lower[a] = upper[a] = points[0, a]
+    for p in range(1, len(points)):
+        for a in range(3):
+            v = points[p, a]
+            if v < lower[a]:
+                lower[a] = v
+            elif v > upper[a]:
+                upper[a] = v
+
+
+@njit(cache=True, nogil=True)
+def _sort_into_cells(
+    points: np.ndarray, lower: np.ndarray, cell: float, dims: np.ndarray, sorted_: np.ndarray,
+    order: np.ndarray, starts: np.ndarray,
+) -> None:  # fmt: skip
+    """A counting sort of ``points`` by their cells (x-major, then y, then z; points of one
+    cell in their given order): the points in that order into ``sorted_``, their indices into
+    ``order``, and where each cell's run begins into ``starts`` (one more than the cells)."""
+    n = len(points)
+    keys = np.empty(n, dtype=np.int64)
+    for p in range(n):
+        ix = min(math.floor((points[p, 0] - lower[0]) / cell), dims[0] - 1)
+        iy = min(math.floor((points[p, 1] - lower[1]) / cell), dims[1] - 1)
+        iz = min(math.floor((points[p, 2] - lower[2]) / cell), dims[2] - 1)
+        key = (ix * dims[1] + iy) * dims[2] + iz
+        keys[p] = key
+        starts[key + 1] += 1
+    for c in range(1, len(starts)):
+        starts[c] += starts[c - 1]
+    fill = starts[:-1].copy()
+    for p in range(n):
+        slot = fill[keys[p]]
+        fill[keys[p]] = slot + 1
+        sorted_[slot, 0], sorted_[slot, 1], sorted_[slot, 2] = (
+            points[p, 0], points[p, 1], points[p, 2])
+        order[slot] = p
 
 
 @njit(cache=True, nogil=True)

@@ -116,6 +116,26 @@ def test_queries_above_below_and_beside_a_flat_grid() -> None:
     assert (index[3:, 0] < len(points)).all()
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 400), cell=st.floats(0.03, 0.6))
+def test_the_cells_hold_the_points_in_a_stable_sort_by_cell(seed: int, n: int,
+                                                           cell: float) -> None:  # fmt: skip
+    """The grid's counting sort: the points sorted by cell (x-major) with a stable argsort,
+    runs of repeated points and points on the box's far faces included."""
+    rng = np.random.default_rng(seed)
+    points = np.round(rng.uniform(-1.0, 1.0, (n, 3)) * rng.uniform(0.01, 2.0, 3), 2)
+    grid = PointGrid(points, cell_m=cell)
+    assert np.array_equal(grid.lower, points.min(axis=0))
+    ijk = np.minimum(np.floor((points - grid.lower) / grid.cell_m).astype(np.int64),
+                     grid.dims - 1)  # fmt: skip
+    keys = (ijk[:, 0] * grid.dims[1] + ijk[:, 1]) * grid.dims[2] + ijk[:, 2]
+    order = np.argsort(keys, kind="stable")
+    assert np.array_equal(grid.order, order)
+    assert np.array_equal(grid.sorted, points[order])
+    counts = np.bincount(keys, minlength=int(np.prod(grid.dims)))
+    assert np.array_equal(grid.starts, np.r_[0, np.cumsum(counts)])
+
+
 def test_an_empty_cloud_and_no_queries() -> None:
     empty = PointGrid(np.zeros((0, 3)))
     assert len(empty) == 0
