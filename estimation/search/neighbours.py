@@ -129,8 +129,8 @@ def _sort_into_cells(
     for p in range(n):
         slot = fill[keys[p]]
         fill[keys[p]] = slot + 1
-        sorted_[slot, 0], sorted_[slot, 1], sorted_[slot, 2] = (
-            points[p, 0], points[p, 1], points[p, 2])
+        for a in range(3):
+            sorted_[slot, a] = points[p, a]
         order[slot] = p
 
 
