@@ -121,14 +121,8 @@ _ONE_BASIN_M = 0.01
 _ONE_BASIN_RAD = math.radians(0.1)
 
 
-def _search_near(
-    local: Band,
-    global_: Band,
-    params: SearchParams,
-    predicted: np.ndarray,
-    side_m: float,
-    yaw_reach_rad: float,
-) -> tuple[SearchResult, bool]:
+def _search_near(local: Band, global_: Band, params: SearchParams, predicted: np.ndarray,
+                 side_m: float, yaw_reach_rad: float) -> tuple[SearchResult, bool]:  # fmt: skip
     """Every pose of the square window of ``side_m`` centred on the predicted position (moved
     inside the map if it lies outside) within ``yaw_reach_rad`` of the predicted yaw, on the
     search's lattices: the PDF of that window (a corridor's 180° twin lies outside it), and
@@ -473,21 +467,24 @@ def loop_closures(
         result = searched.result
         started = time.perf_counter()
         cloud = maps.cloud(closure.station, estimate, ties)
-        older = maps.older_cloud(closure.anchor, closure.older, estimate, ties)
-        refined = _refined(result, cloud, older, params)
-        if not searched.dominant and not _one_basin(result, refined, cloud, older, params):
-            refused = _Refined(refined.pose, None, refined.registration, False)
-            return refused, False, time.perf_counter() - started
-        if len(closure.older) > 1:
-            # The older stations lie in the anchor's frame where the estimate puts them; its own
-            # map does not depend on the estimate. When the station registers soundly on it,
-            # that is the closure (generated building 4: closures against 51–54 older stations
-            # came out 12–21 cm and 1.4–1.7° off with the drift the stations shared, those on
-            # the anchor alone within 0.4 cm and 0.05°).
-            alone = _refined(result, cloud, maps.cloud(closure.anchor, estimate, ties), params,
-                             seed=refined.pose)  # fmt: skip
-            if alone.sound:
-                refined = alone
+        anchor = maps.cloud(closure.anchor, estimate, ties)
+        # The anchor's own map does not depend on the estimate: a sound registration there is
+        # the closure (generated building 4: on 51–54 older stations 12–21 cm and 1.4–1.7° off
+        # with their shared drift, on the anchor alone within 0.4 cm / 0.05°). A dominant peak
+        # tries it first from the search's pose; the older stations' cloud (ten times the
+        # points) only when that fails, or to check a peak dominant given the prediction.
+        alone_first = searched.dominant and len(closure.older) > 1
+        refined = _refined(result, cloud, anchor, params) if alone_first else None
+        if refined is None or not refined.sound:
+            older = maps.older_cloud(closure.anchor, closure.older, estimate, ties)
+            refined = _refined(result, cloud, older, params)
+            if not searched.dominant and not _one_basin(result, refined, cloud, older, params):
+                refused = _Refined(refined.pose, None, refined.registration, False)
+                return refused, False, time.perf_counter() - started
+            if len(closure.older) > 1:
+                alone = _refined(result, cloud, anchor, params, seed=refined.pose)
+                if alone.sound:
+                    refined = alone
         measured = result.covariance if refined.covariance is None else refined.covariance
         offset = se2.log(se2.between(closure.predicted, refined.pose))
         covariance = closure.uncertainty + measured

@@ -547,6 +547,53 @@ def test_a_loop_closure_registers_on_its_anchor_alone_when_the_older_stations_dr
     assert abs(math.remainder(event.pose[2] - expected[2], 2 * math.pi)) < math.radians(0.05)
 
 
+@pytest.mark.parametrize("anchor_fails", [False, True])
+def test_a_dominant_loop_closure_registers_on_the_older_stations_only_when_its_anchor_fails(
+    monkeypatch: pytest.MonkeyPatch, anchor_fails: bool
+) -> None:
+    """A dominant peak is registered on the anchor's own cloud first, from the search's pose;
+    the older stations' joined cloud is made and registered on only when that fails, and the
+    anchor is then tried again from where the joined cloud put the station."""
+    stations, factors, truth = revisiting_mission()
+    calls: list[tuple[int, bool]] = []  # (target points, seeded by the search's pose)
+    register, older_cloud = stations_module.register, StationMaps.older_cloud
+    joined: list[int] = []
+
+    def counted(source, target, seed, params, *rest):  # type: ignore[no-untyped-def]
+        calls.append((len(target), not calls))
+        if anchor_fails and len(calls) == 1:
+            return None
+        return register(source, target, seed, params, *rest)
+
+    def counted_older(self, *args):  # type: ignore[no-untyped-def]
+        cloud = older_cloud(self, *args)
+        joined.append(len(cloud))
+        return cloud
+
+    monkeypatch.setattr(stations_module, "register", counted)
+    monkeypatch.setattr(StationMaps, "older_cloud", counted_older)
+    params = dataclasses.replace(TOLERANT, registration=RegistrationParams())
+    estimate = dict(truth)  # a0 believed off: b1 joins it in the map of older stations
+    for robot in "ab":
+        estimate[pose_key(robot, 0)] = se2.compose(np.array([0.15, -0.1, math.radians(1.5)]),
+                                                   truth[pose_key(robot, 0)])  # fmt: skip
+    events, records = loop_closures(stations, estimate, factors, params,
+                                    only={pose_key("b", 5)})  # fmt: skip
+    assert [(r.station, r.against, r.dominant, r.used) for r in records] == [
+        ("b5", "a0", True, True)
+    ]
+    if anchor_fails:
+        assert len(calls) == 3
+        assert len(joined) == 1
+        assert calls[0][0] == calls[2][0] < calls[1][0] <= joined[0]  # anchor, joined, anchor
+    else:
+        assert len(calls) == 1
+        assert joined == []
+    expected = se2.between(truth[pose_key("a", 0)], truth[pose_key("b", 5)])
+    assert math.dist(events[0].pose[:2], expected[:2]) < 0.003
+    assert abs(math.remainder(events[0].pose[2] - expected[2], 2 * math.pi)) < math.radians(0.05)
+
+
 @pytest.mark.parametrize(
     ("runner_up", "registration", "used"),
     [("down the ridge", True, True),  # it registers where the peak did
