@@ -13,15 +13,24 @@ origin at 0 (the default) the lattice is OctoMap's.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from mapping.errors import MapError
 from mapping.kernels.blocks import (
     BLOCK_OFFSET,
     first_bad_point,
+    layout_table,
     rebuild_table,
 )
-from mapping.kernels.cells import add_cells, lookup_cells, merge_blocks, segment_blocked
+from mapping.kernels.cells import (
+    add_cells,
+    known_in_layers,
+    lookup_cells,
+    merge_blocks,
+    segment_blocked,
+)
 from mapping.kernels.integrate import PHASE_DONE, PHASE_HITS, integrate
 from mapping.lanes import RAYS_PER_LANE, mark_side_by_side
 from mapping.logodds import logodds, probability
@@ -288,16 +297,11 @@ class OccupancyGrid:
             self._store.known[:n],
         )
         if z_range is not None:
-            k_first, k_last = z_range
-            bz = coords[:, 2]
-            rows = np.flatnonzero((bz * bs <= k_last) & (bz * bs + bs - 1 >= k_first))
-            coords, logodds, known_bits = coords[rows], logodds[rows], known_bits[rows]
+            k_first, k_last = (int(k) for k in z_range)
+            return known_in_layers(coords, known_bits, logodds, self._local_of_flat(), bs,
+                                   k_first, k_last)  # fmt: skip
         found, block, flat = self._decode(coords, known_bits)
-        values = logodds[block, flat].astype(np.float64)
-        if z_range is not None:
-            keep = (found[:, 2] >= z_range[0]) & (found[:, 2] <= z_range[1])
-            found, values = found[keep], values[keep]
-        return found, values
+        return found, logodds[block, flat].astype(np.float64)
 
     def logodds_at(self, cells: np.ndarray) -> np.ndarray:
         """(N,) log-odds of (N, 3) cells, NaN where unknown."""
@@ -471,12 +475,8 @@ class OccupancyGrid:
         return np.asarray(lut[0][:, None, None] + lut[1][None, :, None] + lut[2][None, None, :])
 
     def _local_of_flat(self) -> np.ndarray:
-        """(bs³, 3) in-block cell (x, y, z) of each storage offset."""
-        bs = self.params.block_size_cells
-        local = np.stack(np.meshgrid(*(np.arange(bs),) * 3, indexing="ij"), axis=-1)
-        out = np.empty((bs**3, 3), dtype=np.int64)
-        out[self._flat_of_local().reshape(-1)] = local.reshape(-1, 3)
-        return out
+        """(bs³, 3) in-block cell (x, y, z) of each storage offset (read-only)."""
+        return _local_of_flat(self.params.block_size_cells)
 
     def _add(self, cells: np.ndarray, values: np.ndarray) -> None:
         params, store = self.params, self._store
@@ -535,3 +535,16 @@ class OccupancyGrid:
         if len(cells) and np.abs(cells).max() >= self._max_cells:
             raise MapError(f"cell index {int(np.abs(cells).max())} beyond the addressable map")
         return cells
+
+
+@functools.lru_cache(maxsize=4)
+def _local_of_flat(bs: int) -> np.ndarray:
+    """(bs³, 3) in-block cell (x, y, z) of each storage offset of a block of side ``bs``
+    (its layout, ``layout_table``), made once per side: read-only."""
+    lut = layout_table(bs)
+    flat = lut[0][:, None, None] + lut[1][None, :, None] + lut[2][None, None, :]
+    local = np.stack(np.meshgrid(*(np.arange(bs),) * 3, indexing="ij"), axis=-1)
+    out = np.empty((bs**3, 3), dtype=np.int64)
+    out[flat.reshape(-1)] = local.reshape(-1, 3)
+    out.flags.writeable = False
+    return out

@@ -310,3 +310,37 @@ def segment_blocked(
         if value > threshold:
             return True
     return False
+
+
+@njit(cache=True, nogil=True)
+def known_in_layers(
+    coords: np.ndarray, known: np.ndarray, logodds: np.ndarray, local_of_flat: np.ndarray,
+    bs: int, k_first: int, k_last: int,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The known cells of the blocks at ``coords`` (their ``known`` bits and ``logodds``)
+    whose layer lies in [``k_first``, ``k_last``]: (N, 3) cell indices and (N,) float64
+    log-odds, block by block and in storage order within a block (``np.nonzero``'s order over
+    the blocks' known bits). Only the bits of those layers are read."""
+    n_blocks = len(coords)
+    cells_per_block = bs * bs * bs
+    most = 0
+    for b in range(n_blocks):
+        z0 = coords[b, 2] * bs
+        most += bs * bs * max(0, min(k_last, z0 + bs - 1) - max(k_first, z0) + 1)
+    cells = np.empty((most, 3), dtype=np.int64)
+    values = np.empty(most, dtype=np.float64)
+    count = 0
+    for b in range(n_blocks):
+        x0, y0, z0 = coords[b, 0] * bs, coords[b, 1] * bs, coords[b, 2] * bs
+        if z0 + bs - 1 < k_first or z0 > k_last:
+            continue
+        for flat in range(cells_per_block):
+            z = z0 + local_of_flat[flat, 2]
+            if z < k_first or z > k_last or not (known[b, flat >> 3] >> (flat & 7)) & 1:
+                continue
+            cells[count, 0] = x0 + local_of_flat[flat, 0]
+            cells[count, 1] = y0 + local_of_flat[flat, 1]
+            cells[count, 2] = z
+            values[count] = logodds[b, flat]
+            count += 1
+    return cells[:count], values[:count]

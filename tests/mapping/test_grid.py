@@ -76,11 +76,16 @@ def test_cells_of_some_layers() -> None:
     grid = OccupancyGrid()
     grid.integrate_scan(room_scan(sensor), sensor)
     every, values = grid.cells()
-    band, band_values = grid.cells(z_range=(20, 22))
-    keep = (every[:, 2] >= 20) & (every[:, 2] <= 22)
-    assert len(band) == int(keep.sum()) > 0
-    assert {tuple(c) for c in band} == {tuple(c) for c in every[keep]}
-    assert sorted(band_values) == sorted(values[keep])
+    for first, last in [(20, 22), (0, 0), (15, 16), (-5, 2), (-40, 60), (23, 20), (500, 600)]:
+        band, band_values = grid.cells(z_range=(first, last))
+        keep = (every[:, 2] >= first) & (every[:, 2] <= last)
+        # Only those layers' bits are read, and the cells come in the same order.
+        assert np.array_equal(band, every[keep])
+        assert np.array_equal(band_values, values[keep])
+        assert band.dtype == np.int64
+        assert band_values.dtype == np.float64
+    assert len(grid.cells(z_range=(20, 22))[0]) > 0
+    assert len(grid.cells(z_range=(-40, 60))[0]) == len(every)
 
 
 def test_origin_shifts_the_lattice() -> None:
