@@ -71,9 +71,10 @@ def test_queries_on_known_and_unknown_cells() -> None:
     assert grid.cell_of(np.array([[-0.01, 0.0, 0.25]])).tolist() == [[-1, 0, 2]]
 
 
-def test_cells_of_some_layers() -> None:
+@pytest.mark.parametrize("block", [16, 8, 6])
+def test_cells_of_some_layers(block: int) -> None:
     sensor = np.array([2.0, 1.5, 1.0])
-    grid = OccupancyGrid()
+    grid = OccupancyGrid(GridParams(block_size_cells=block))
     grid.integrate_scan(room_scan(sensor), sensor)
     every, values = grid.cells()
     for first, last in [(20, 22), (0, 0), (15, 16), (-5, 2), (-40, 60), (23, 20), (500, 600)]:
