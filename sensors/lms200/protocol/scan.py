@@ -12,7 +12,7 @@ import enum
 import functools
 import math
 import struct
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Final
 
 import numpy as np
@@ -101,6 +101,44 @@ class Scan:
 
     def with_stamp(self, stamp_s: float) -> Scan:
         return replace(self, stamp_s=stamp_s)
+
+
+# Each field's slot, set without the frozen dataclass's guard (``_decoded_scan``).
+_SCAN_FIELDS = ("ranges_m", "bearing_rad", "flags", "code", "unit_m", "partial",
+                "partial_offset_deg", "scan_index", "telegram_index", "status", "stamp_s",
+                "measuring_mode", "raw", "count_word")  # fmt: skip
+if tuple(f.name for f in fields(Scan)) != _SCAN_FIELDS:  # pragma: no cover - a changed Scan
+    raise ImportError("sensors.lms200.protocol.scan: _SCAN_FIELDS no longer lists Scan's fields")
+(_set_ranges, _set_bearings, _set_flags, _set_code, _set_unit, _set_partial, _set_offset,
+ _set_scan_index, _set_telegram_index, _set_status, _set_stamp, _set_mode, _set_raw,
+ _set_count_word) = (getattr(Scan, name).__set__ for name in _SCAN_FIELDS)  # fmt: skip
+
+
+def _decoded_scan(
+    ranges_m: np.ndarray, bearing_rad: np.ndarray, flags: np.ndarray, code: np.ndarray,
+    unit_m: float, partial: bool, partial_offset_deg: float, scan_index: int | None,
+    telegram_index: int | None, status: int, stamp_s: float | None, measuring_mode: int,
+    raw: np.ndarray, count_word: int,
+) -> Scan:  # fmt: skip
+    """``Scan(...)`` of every field, in their order, with the slots set directly: a capture
+    decodes tens of thousands of scans, and the frozen dataclass's ``__init__`` (each field
+    through ``object.__setattr__``) took 2.2 µs of a scan's 4.4."""
+    scan: Scan = object.__new__(Scan)
+    _set_ranges(scan, ranges_m)
+    _set_bearings(scan, bearing_rad)
+    _set_flags(scan, flags)
+    _set_code(scan, code)
+    _set_unit(scan, unit_m)
+    _set_partial(scan, partial)
+    _set_offset(scan, partial_offset_deg)
+    _set_scan_index(scan, scan_index)
+    _set_telegram_index(scan, telegram_index)
+    _set_status(scan, status)
+    _set_stamp(scan, stamp_s)
+    _set_mode(scan, measuring_mode)
+    _set_raw(scan, raw)
+    _set_count_word(scan, count_word)
+    return scan
 
 
 @functools.lru_cache(maxsize=64)
@@ -247,7 +285,7 @@ class ScanBatch:
             offset_deg = 0.25 * ((word >> 11) & 0x03) if partial else 0.0
             indexed = scan_index[k] >= 0
             scans.append(
-                Scan(
+                _decoded_scan(
                     ranges[a:b],
                     _shared_bearings(b - a, partial, offset_deg),
                     flags[a:b],

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -42,7 +43,13 @@ from sensors.lms200.protocol.replies import (
     encode_status_reply,
     encode_variant_reply,
 )
-from sensors.lms200.protocol.scan import SpecialCode, decode_scan, encode_scan, scan_interval_s
+from sensors.lms200.protocol.scan import (
+    Scan,
+    SpecialCode,
+    decode_scan,
+    encode_scan,
+    scan_interval_s,
+)
 from sensors.lms200.protocol.stream import Handshake, StreamParser, Telegram
 from sensors.lms200.protocol.telegram import MAX_LEN, ProtocolError, checksum, frame, reply_frame
 
@@ -244,6 +251,26 @@ def test_scan_round_trip_with_flags_special_codes_and_indices() -> None:
     # 100° variant: −50° … +50° in the scanner frame (the LMS's own 40° … 140°).
     assert math.degrees(scan.bearing_rad[0]) == pytest.approx(-50.0)
     assert math.degrees(scan.bearing_rad[-1]) == pytest.approx(50.0)
+
+
+def test_a_decoded_scan_is_the_scan_its_fields_make() -> None:
+    """Decoded scans are made with their slots set directly: the same as ``Scan(...)`` of
+    their fields, frozen, equal and hashable as dataclasses are, and ``replace`` works."""
+    raw = encode_scan(np.linspace(0.5, 4.0, 181), scan_index=3, telegram_index=4)
+    (telegram,) = StreamParser().feed(raw)
+    assert isinstance(telegram, Telegram)
+    scan = decode_scan(telegram, measuring_mode=1)
+    names = [f.name for f in dataclasses.fields(Scan)]
+    made = Scan(*(getattr(scan, name) for name in names))
+    assert type(scan) is Scan
+    assert all(getattr(made, name) is getattr(scan, name) for name in names)
+    assert scan == made
+    assert hash(dataclasses.replace(scan, ranges_m=None, bearing_rad=None, flags=None,
+                                    code=None, raw=None)) is not None  # fmt: skip
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        scan.unit_m = 1.0  # type: ignore[misc]
+    stamped = scan.with_stamp(12.5)
+    assert (stamped.stamp_s, stamped.count_word, stamped.scan_index) == (12.5, scan.count_word, 3)
 
 
 @pytest.mark.parametrize(
