@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -51,9 +52,56 @@ def fit_circle_fixed_radius(
     Gauss–Newton on Σ (|p − c| − R)², started a radius beyond the points' centroid (the
     scanner sees the near side of the cylinder). Returns (centre, RMS residual).
     """
+    xy = np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2)
     centroid = xy.mean(axis=0)
     distance = float(np.linalg.norm(centroid))
     center = centroid * (1.0 + radius_m / distance) if distance > 0 else centroid.copy()
+    fitted = np.empty(2)
+    rms = _circle_gauss_newton(xy, float(radius_m), center, iterations, fitted)
+    if math.isnan(rms):  # the normal equations are singular there: the least-squares steps
+        return _fit_circle_lstsq(xy, radius_m, center, iterations)
+    return fitted, rms
+
+
+@njit(cache=True, nogil=True)
+def _circle_gauss_newton(xy: np.ndarray, radius_m: float, center: np.ndarray, iterations: int,
+                         fitted: np.ndarray) -> float:  # fmt: skip
+    """:func:`fit_circle_fixed_radius`'s iterations from ``center``, each step solved from its
+    2 × 2 normal equations: the centre into ``fitted``, and the RMS residual; NaN when a step's
+    equations are (nearly) singular (every return on one line through the centre)."""
+    cx, cy = center[0], center[1]
+    for _ in range(iterations):
+        a = b = d = gx = gy = 0.0  # JᵀJ = [[a, b], [b, d]] and Jᵀr, J = −(p − c) / |p − c|
+        for i in range(len(xy)):
+            ox, oy = xy[i, 0] - cx, xy[i, 1] - cy
+            length = max(math.sqrt(ox * ox + oy * oy), 1e-12)
+            r = length - radius_m
+            jx, jy = -ox / length, -oy / length
+            a += jx * jx
+            b += jx * jy
+            d += jy * jy
+            gx += jx * r
+            gy += jy * r
+        det = a * d - b * b
+        if not det > 1e-12 * (a + d) * (a + d):
+            return math.nan
+        sx, sy = (b * gy - d * gx) / det, (b * gx - a * gy) / det
+        cx, cy = cx + sx, cy + sy
+        if math.sqrt(sx * sx + sy * sy) < 1e-9:
+            break
+    total = 0.0
+    for i in range(len(xy)):
+        ox, oy = xy[i, 0] - cx, xy[i, 1] - cy
+        r = math.sqrt(ox * ox + oy * oy) - radius_m
+        total += r * r
+    fitted[0], fitted[1] = cx, cy
+    return math.sqrt(total / len(xy))
+
+
+def _fit_circle_lstsq(xy: np.ndarray, radius_m: float, center: np.ndarray,
+                      iterations: int) -> tuple[np.ndarray, float]:  # fmt: skip
+    """The same iterations with each step by least squares (the minimum-norm step where the
+    returns leave the centre's direction along their line free)."""
     for _ in range(iterations):
         offsets = xy - center
         lengths = np.linalg.norm(offsets, axis=1)

@@ -6,11 +6,13 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sensors.geometry.frames import scanner_pose_matrix
 from sensors.lms200.protocol.scan import decode_scan
 from sensors.lms200.protocol.stream import StreamParser, Telegram
-from sensors.scan3d.beacon import detect_beacons, fit_circle_fixed_radius
+from sensors.scan3d.beacon import _fit_circle_lstsq, detect_beacons, fit_circle_fixed_radius
 from sensors.scan3d.mirror import MirrorGeometry, assemble_sweeps, estimate_mirror, scan_times
 from sensors.sim.scene import RaycastScene, build_mesh
 from sensors.sim.sensing import (
@@ -137,6 +139,41 @@ def test_circle_fit_recovers_the_axis() -> None:
     fitted, residual = fit_circle_fixed_radius(xy, radius)
     np.testing.assert_allclose(fitted, center, atol=0.005)
     assert residual < 0.005
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 80), noise=st.floats(0.0, 0.02))
+def test_the_circle_fit_takes_the_least_squares_steps(seed: int, n: int, noise: float) -> None:
+    """The fit's steps from their 2 × 2 normal equations are the least-squares steps (the
+    returns of an arc seen from the scanner, up to 2 cm off it)."""
+    rng = np.random.default_rng(seed)
+    center, radius = rng.uniform(-8.0, 8.0, 2), 0.05
+    near = math.atan2(-center[1], -center[0])
+    angles = near + rng.uniform(-1.3, 1.3, n)
+    xy = center + radius * np.column_stack([np.cos(angles), np.sin(angles)])
+    xy += rng.normal(0.0, noise, (n, 2))
+    fitted, residual = fit_circle_fixed_radius(xy, radius)
+    centroid = xy.mean(axis=0)
+    start = centroid * (1.0 + radius / np.linalg.norm(centroid))
+    expected, expected_residual = _fit_circle_lstsq(xy, radius, start, 20)
+    np.testing.assert_allclose(fitted, expected, rtol=0.0, atol=1e-12)
+    assert residual == pytest.approx(expected_residual, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    "xy",
+    [np.array([[1.0, 0.0]]), np.array([[1.0, 0.0], [1.0, 0.0]]),
+     np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])],  # one line through the start
+)  # fmt: skip
+def test_a_circle_fit_with_singular_steps_takes_the_minimum_norm_ones(xy: np.ndarray) -> None:
+    fitted, residual = fit_circle_fixed_radius(xy, 0.05)
+    centroid = xy.mean(axis=0)
+    expected, expected_residual = _fit_circle_lstsq(
+        xy, 0.05, centroid * (1.0 + 0.05 / np.linalg.norm(centroid)), 20
+    )
+    np.testing.assert_array_equal(fitted, expected)
+    assert residual == expected_residual
+    assert np.isfinite(fitted).all()
 
 
 def test_no_flagged_returns_no_beacons() -> None:
