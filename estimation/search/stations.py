@@ -462,7 +462,7 @@ def loop_closures(
     maps.prepare([s for c, _ in wanted for s in (c.station, *c.older)], estimate, ties, workers,
                  clouds=True)  # fmt: skip
 
-    def refine(item: tuple[_Closure, _Searched]) -> tuple[_Refined, bool, float]:
+    def refine(item: tuple[_Closure, _Searched]) -> tuple[_Refined, Localize | None, float]:
         closure, searched = item
         result = searched.result
         started = time.perf_counter()
@@ -480,7 +480,7 @@ def loop_closures(
             refined = _refined(result, cloud, older, params)
             if not searched.dominant and not _one_basin(result, refined, cloud, older, params):
                 refused = _Refined(refined.pose, None, refined.registration, False)
-                return refused, False, time.perf_counter() - started
+                return refused, None, time.perf_counter() - started
             if len(closure.older) > 1:
                 alone = _refined(result, cloud, anchor, params, seed=refined.pose)
                 if alone.sound:
@@ -489,7 +489,10 @@ def loop_closures(
         offset = se2.log(se2.between(closure.predicted, refined.pose))
         covariance = closure.uncertainty + measured
         chi2_value = float(offset @ np.linalg.solve(covariance, offset))
-        return refined, refined.sound and chi2_value < _LOOP_GATE, time.perf_counter() - started
+        use = refined.sound and chi2_value < _LOOP_GATE
+        # Its PDF (a float64 copy of up to 1.6 M poses) is made here, on the searches' threads.
+        event = refined.event(closure.station, closure.anchor, None, result) if use else None
+        return refined, event, time.perf_counter() - started
 
     refinements = dict(zip((id(c) for c, _ in wanted), side_by_side(refine, wanted, workers),
                            strict=True))  # fmt: skip
@@ -498,18 +501,18 @@ def loop_closures(
     for closure, searched in found:
         result, seconds = searched.result, searched.seconds
         refined = _Refined(np.asarray(result.pose, dtype=float), None, None, False)
-        use = False
+        event = None
         if id(closure) in refinements:
-            refined, use, more = refinements[id(closure)]
+            refined, event, more = refinements[id(closure)]
             seconds += more
-        if use:
-            events.append(refined.event(closure.station, closure.anchor, None, result))
+        if event is not None:
+            events.append(event)
         maps.searched(closure.station, seconds)
         records.append(
             SearchRecord(
                 station=closure.station.label, against=closure.anchor.label, band="ceiling",
                 kind="loop", peak_ratio=float(result.peak_ratio), dominant=searched.dominant,
-                used=use, seconds=seconds, time_s=closure.station.time_s,
+                used=event is not None, seconds=seconds, time_s=closure.station.time_s,
                 overlap=searched.overlap,
                 picture=SearchPicture.of(result, closure.local, closure.global_),
                 **refined.record_fields(result),
