@@ -320,13 +320,11 @@ def mark_rays(
 
 @njit(cache=True, inline="always")
 def _mark(cube: np.ndarray, m: int) -> None:
-    """Mark cube cell ``m`` (Morton) seen, and its chunk written (``reset_cube`` clears it)."""
-    byte = m >> 3
-    seen = np.int64(cube[byte])
-    bit = 1 << (m & 7)
-    if not seen & bit:
-        cube[byte] = np.uint8(seen | bit)
-        cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
+    """Mark cube cell ``m`` (Morton) seen, and its chunk written (``reset_cube`` clears it).
+    Both are stored whether or not they were set already: testing first (a branch that goes
+    either way as rays cross cells others marked) made the walk 33 % slower at 0.1 m."""
+    cube[m >> 3] |= np.uint8(1 << (m & 7))
+    cube[CUBE_BYTES + (m >> (CUBE_CHUNK_BITS + 3))] = 1
 
 
 @njit(cache=True)
