@@ -12,3 +12,5 @@
 
 Every error is a ``mapping.errors.MapError``.
 """
+
+import sensors  # noqa: F401 - numba's cache folder, before any kernel (sensors.jitcache)
