@@ -145,7 +145,10 @@ def test_circle_fit_recovers_the_axis() -> None:
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(2, 80), noise=st.floats(0.0, 0.02))
 def test_the_circle_fit_takes_the_least_squares_steps(seed: int, n: int, noise: float) -> None:
     """The fit's steps from their 2 × 2 normal equations are the least-squares steps (the
-    returns of an arc seen from the scanner, up to 2 cm off it)."""
+    returns of an arc seen from the scanner, up to 2 cm off it): the same centre to 1e-12 m
+    (2e-15 m at most in 20,000 random arcs). Two returns fit two circles about equally well,
+    the steps need not settle, and the two solutions' rounding drifts apart (6e-10 m at most
+    in 20,000): there, to a micrometre."""
     rng = np.random.default_rng(seed)
     center, radius = rng.uniform(-8.0, 8.0, 2), 0.05
     near = math.atan2(-center[1], -center[0])
@@ -156,8 +159,9 @@ def test_the_circle_fit_takes_the_least_squares_steps(seed: int, n: int, noise: 
     centroid = xy.mean(axis=0)
     start = centroid * (1.0 + radius / np.linalg.norm(centroid))
     expected, expected_residual = _fit_circle_lstsq(xy, radius, start, 20)
-    np.testing.assert_allclose(fitted, expected, rtol=0.0, atol=1e-12)
-    assert residual == pytest.approx(expected_residual, abs=1e-12)
+    tolerance = 1e-12 if n >= 3 else 1e-6
+    np.testing.assert_allclose(fitted, expected, rtol=0.0, atol=tolerance)
+    assert residual == pytest.approx(expected_residual, abs=tolerance)
 
 
 @pytest.mark.parametrize(
