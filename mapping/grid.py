@@ -470,9 +470,8 @@ class OccupancyGrid:
         return np.asarray(bits[:, :cells].view(bool))
 
     def _flat_of_local(self) -> np.ndarray:
-        """(bs, bs, bs) storage offset of each in-block cell (x, y, z)."""
-        lut = self._store.lut
-        return np.asarray(lut[0][:, None, None] + lut[1][None, :, None] + lut[2][None, None, :])
+        """(bs, bs, bs) storage offset of each in-block cell (x, y, z) (read-only)."""
+        return _flat_of_local(self.params.block_size_cells)
 
     def _local_of_flat(self) -> np.ndarray:
         """(bs³, 3) in-block cell (x, y, z) of each storage offset (read-only)."""
@@ -538,13 +537,22 @@ class OccupancyGrid:
 
 
 @functools.lru_cache(maxsize=4)
-def _local_of_flat(bs: int) -> np.ndarray:
-    """(bs³, 3) in-block cell (x, y, z) of each storage offset of a block of side ``bs``
-    (its layout, ``layout_table``), made once per side: read-only."""
+def _flat_of_local(bs: int) -> np.ndarray:
+    """(bs, bs, bs) storage offset of each in-block cell (x, y, z) of a block of side ``bs``
+    (its layout, ``layout_table``, as the block storage lays it out), made once per side:
+    read-only."""
     lut = layout_table(bs)
     flat = lut[0][:, None, None] + lut[1][None, :, None] + lut[2][None, None, :]
+    flat.flags.writeable = False
+    return flat
+
+
+@functools.lru_cache(maxsize=4)
+def _local_of_flat(bs: int) -> np.ndarray:
+    """(bs³, 3) in-block cell (x, y, z) of each storage offset of a block of side ``bs``, made
+    once per side: read-only."""
     local = np.stack(np.meshgrid(*(np.arange(bs),) * 3, indexing="ij"), axis=-1)
     out = np.empty((bs**3, 3), dtype=np.int64)
-    out[flat.reshape(-1)] = local.reshape(-1, 3)
+    out[_flat_of_local(bs).reshape(-1)] = local.reshape(-1, 3)
     out.flags.writeable = False
     return out
