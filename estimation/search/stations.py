@@ -481,10 +481,10 @@ def loop_closures(
             if not searched.dominant and not _one_basin(result, refined, cloud, older, params):
                 refused = _Refined(refined.pose, None, refined.registration, False)
                 return refused, None, time.perf_counter() - started
-            if len(closure.older) > 1:
+            again = not (alone_first and np.array_equal(refined.pose, result.pose))  # tried
+            if len(closure.older) > 1 and again:
                 alone = _refined(result, cloud, anchor, params, seed=refined.pose)
-                if alone.sound:
-                    refined = alone
+                refined = alone if alone.sound else refined
         measured = result.covariance if refined.covariance is None else refined.covariance
         offset = se2.log(se2.between(closure.predicted, refined.pose))
         covariance = closure.uncertainty + measured

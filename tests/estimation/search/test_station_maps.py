@@ -594,6 +594,32 @@ def test_a_dominant_loop_closure_registers_on_the_older_stations_only_when_its_a
     assert abs(math.remainder(events[0].pose[2] - expected[2], 2 * math.pi)) < math.radians(0.05)
 
 
+def test_a_closure_whose_joined_registration_fails_is_not_registered_on_its_anchor_twice(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """When the anchor fails from the search's pose and the joined cloud finds nothing, the
+    pose to try the anchor from again is the search's: that registration already ran."""
+    stations, factors, truth = revisiting_mission()
+    calls: list[int] = []
+
+    def failing(source, target, seed, params, *rest):  # type: ignore[no-untyped-def]
+        calls.append(len(target))
+        return None
+
+    monkeypatch.setattr(stations_module, "register", failing)
+    params = dataclasses.replace(TOLERANT, registration=RegistrationParams())
+    estimate = dict(truth)  # a0 believed off: b1 joins it in the map of older stations
+    for robot in "ab":
+        estimate[pose_key(robot, 0)] = se2.compose(np.array([0.15, -0.1, math.radians(1.5)]),
+                                                   truth[pose_key(robot, 0)])  # fmt: skip
+    events, records = loop_closures(stations, estimate, factors, params,
+                                    only={pose_key("b", 5)})  # fmt: skip
+    assert [(r.station, r.dominant, r.used) for r in records] == [("b5", True, False)]
+    assert events == []
+    assert len(calls) == 2  # the anchor, then the joined cloud
+    assert calls[0] < calls[1]
+
+
 @pytest.mark.parametrize(
     ("runner_up", "registration", "used"),
     [("down the ridge", True, True),  # it registers where the peak did
