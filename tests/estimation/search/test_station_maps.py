@@ -11,12 +11,14 @@ import pytest
 
 from estimation.app.config import Config
 from estimation.app.rig import T_robot_scanner, station_params
+from estimation.posegraph.events import Localize
 from estimation.posegraph.graph import FactorSpec
 from estimation.posegraph.keys import pose_key
 from estimation.posegraph.marginals import relative_covariances
 from estimation.search import station_maps
 from estimation.search import stations as stations_module
 from estimation.search.exhaustive import SearchResult
+from estimation.search.records import SearchRecord
 from estimation.search.registration import RegistrationParams
 from estimation.search.relocalization import relocalize
 from estimation.search.station_maps import (
@@ -547,6 +549,19 @@ def test_a_loop_closure_registers_on_its_anchor_alone_when_the_older_stations_dr
     assert abs(math.remainder(event.pose[2] - expected[2], 2 * math.pi)) < math.radians(0.05)
 
 
+def _b5_closure_with_a0_believed_off(
+    stations: list[Station], factors: list[FactorSpec], truth: dict[int, np.ndarray]
+) -> tuple[list[Localize], list[SearchRecord]]:
+    """b5's loop closure (with registration) while a0 is believed 15 cm and 1.5° off: b1 then
+    joins a0 in the map of older stations."""
+    params = dataclasses.replace(TOLERANT, registration=RegistrationParams())
+    estimate = dict(truth)
+    for robot in "ab":
+        estimate[pose_key(robot, 0)] = se2.compose(np.array([0.15, -0.1, math.radians(1.5)]),
+                                                   truth[pose_key(robot, 0)])  # fmt: skip
+    return loop_closures(stations, estimate, factors, params, only={pose_key("b", 5)})
+
+
 @pytest.mark.parametrize("anchor_fails", [False, True])
 def test_a_dominant_loop_closure_registers_on_the_older_stations_only_when_its_anchor_fails(
     monkeypatch: pytest.MonkeyPatch, anchor_fails: bool
@@ -572,13 +587,7 @@ def test_a_dominant_loop_closure_registers_on_the_older_stations_only_when_its_a
 
     monkeypatch.setattr(stations_module, "register", counted)
     monkeypatch.setattr(StationMaps, "older_cloud", counted_older)
-    params = dataclasses.replace(TOLERANT, registration=RegistrationParams())
-    estimate = dict(truth)  # a0 believed off: b1 joins it in the map of older stations
-    for robot in "ab":
-        estimate[pose_key(robot, 0)] = se2.compose(np.array([0.15, -0.1, math.radians(1.5)]),
-                                                   truth[pose_key(robot, 0)])  # fmt: skip
-    events, records = loop_closures(stations, estimate, factors, params,
-                                    only={pose_key("b", 5)})  # fmt: skip
+    events, records = _b5_closure_with_a0_believed_off(stations, factors, truth)
     assert [(r.station, r.against, r.dominant, r.used) for r in records] == [
         ("b5", "a0", True, True)
     ]
@@ -607,13 +616,7 @@ def test_a_closure_whose_joined_registration_fails_is_not_registered_on_its_anch
         return None
 
     monkeypatch.setattr(stations_module, "register", failing)
-    params = dataclasses.replace(TOLERANT, registration=RegistrationParams())
-    estimate = dict(truth)  # a0 believed off: b1 joins it in the map of older stations
-    for robot in "ab":
-        estimate[pose_key(robot, 0)] = se2.compose(np.array([0.15, -0.1, math.radians(1.5)]),
-                                                   truth[pose_key(robot, 0)])  # fmt: skip
-    events, records = loop_closures(stations, estimate, factors, params,
-                                    only={pose_key("b", 5)})  # fmt: skip
+    events, records = _b5_closure_with_a0_believed_off(stations, factors, truth)
     assert [(r.station, r.dominant, r.used) for r in records] == [("b5", True, False)]
     assert events == []
     assert len(calls) == 2  # the anchor, then the joined cloud
