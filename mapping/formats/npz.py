@@ -87,9 +87,7 @@ def save_map(path: Path | str, grid: OccupancyGrid) -> Path:
     """Write ``grid`` to ``path`` (atomically) and return the path."""
     path = Path(path)
     params = grid.params
-    coords, values = grid.blocks()
-    flat = values.reshape(len(coords), params.block_size_cells**3)
-    known = ~np.isnan(flat)
+    coords, known, values = grid.known_blocks()
     arrays: dict[str, Any] = {
         "format": np.array(MAP_FORMAT),
         "version": np.array(MAP_VERSION, dtype=np.int64),
@@ -97,8 +95,8 @@ def save_map(path: Path | str, grid: OccupancyGrid) -> Path:
         "block_size_cells": np.array(params.block_size_cells, dtype=np.int64),
         "origin_m": np.array(params.origin_m, dtype=np.float64),
         "block_coords": coords.astype(np.int64),
-        "known": np.packbits(known, axis=1, bitorder="little"),
-        "logodds": flat[known].astype(_LOGODDS_TYPES[MAP_VERSION]),  # exact: stored float32
+        "known": known,
+        "logodds": values.astype(_LOGODDS_TYPES[MAP_VERSION]),  # as stored: float32
     }
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
         np.savez_compressed(handle, **arrays)

@@ -320,27 +320,56 @@ def known_in_layers(
     """The known cells of the blocks at ``coords`` (their ``known`` bits and ``logodds``)
     whose layer lies in [``k_first``, ``k_last``]: (N, 3) cell indices and (N,) float64
     log-odds, block by block and in storage order within a block (``np.nonzero``'s order over
-    the blocks' known bits). Only the bits of those layers are read."""
+    the blocks' known bits). Only the bits of those layers are read (twice: counted, then
+    copied into arrays of that many cells)."""
     n_blocks = len(coords)
     cells_per_block = bs * bs * bs
-    most = 0
+    total = 0  # counted first, so that the arrays are the cells' own (no larger buffer behind)
+    for visit in range(2):
+        if visit == 1:
+            cells = np.empty((total, 3), dtype=np.int64)
+            values = np.empty(total, dtype=np.float64)
+        count = 0
+        for b in range(n_blocks):
+            x0, y0, z0 = coords[b, 0] * bs, coords[b, 1] * bs, coords[b, 2] * bs
+            if z0 + bs - 1 < k_first or z0 > k_last:
+                continue
+            for flat in range(cells_per_block):
+                z = z0 + local_of_flat[flat, 2]
+                if z < k_first or z > k_last or not (known[b, flat >> 3] >> (flat & 7)) & 1:
+                    continue
+                if visit == 1:
+                    cells[count, 0] = x0 + local_of_flat[flat, 0]
+                    cells[count, 1] = y0 + local_of_flat[flat, 1]
+                    cells[count, 2] = z
+                    values[count] = logodds[b, flat]
+                count += 1
+        total = count
+    return cells, values
+
+
+@njit(cache=True)
+def known_by_block(
+    known: np.ndarray, logodds: np.ndarray, flat_of_xmajor: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The blocks' known cells in x-major order (``flat_of_xmajor[j]``: the storage offset of
+    the j-th cell x-major): (B, ⌈bs³ / 8⌉) their bits packed little-endian per block
+    (``np.packbits(..., bitorder="little")``'s layout) and the known cells' log-odds, block by
+    block, x-major within a block (as stored, float32)."""
+    n_blocks, cells = len(known), len(flat_of_xmajor)
+    total = 0
     for b in range(n_blocks):
-        z0 = coords[b, 2] * bs
-        most += bs * bs * max(0, min(k_last, z0 + bs - 1) - max(k_first, z0) + 1)
-    cells = np.empty((most, 3), dtype=np.int64)
-    values = np.empty(most, dtype=np.float64)
+        for j in range(cells):
+            f = flat_of_xmajor[j]
+            total += (known[b, f >> 3] >> (f & 7)) & 1
+    bits = np.zeros((n_blocks, (cells + 7) // 8), dtype=np.uint8)
+    values = np.empty(total, dtype=logodds.dtype)
     count = 0
     for b in range(n_blocks):
-        x0, y0, z0 = coords[b, 0] * bs, coords[b, 1] * bs, coords[b, 2] * bs
-        if z0 + bs - 1 < k_first or z0 > k_last:
-            continue
-        for flat in range(cells_per_block):
-            z = z0 + local_of_flat[flat, 2]
-            if z < k_first or z > k_last or not (known[b, flat >> 3] >> (flat & 7)) & 1:
-                continue
-            cells[count, 0] = x0 + local_of_flat[flat, 0]
-            cells[count, 1] = y0 + local_of_flat[flat, 1]
-            cells[count, 2] = z
-            values[count] = logodds[b, flat]
-            count += 1
-    return cells[:count], values[:count]
+        for j in range(cells):
+            f = flat_of_xmajor[j]
+            if (known[b, f >> 3] >> (f & 7)) & 1:
+                bits[b, j >> 3] |= np.uint8(1 << (j & 7))
+                values[count] = logodds[b, f]
+                count += 1
+    return bits, values

@@ -77,6 +77,19 @@ def test_cells_of_some_layers(block: int) -> None:
     grid = OccupancyGrid(GridParams(block_size_cells=block))
     grid.integrate_scan(room_scan(sensor), sensor)
     every, values = grid.cells()
+    # Every layer: what unpacking the known bits block by block (np.nonzero's order) gives.
+    n = grid.block_count
+    cells, block, flat = grid._decode(grid._store.coords[:n], grid._store.known[:n])
+    assert np.array_equal(every, cells)
+    assert np.array_equal(values, grid._store.logodds[:n][block, flat].astype(np.float64))
+    # Arrays of just the known cells (not views of a buffer for every cell of the blocks).
+    tracemalloc.start()
+    try:
+        grid.cells()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 33 * len(every) + 65536
     for first, last in [(20, 22), (0, 0), (15, 16), (-5, 2), (-40, 60), (23, 20), (500, 600)]:
         band, band_values = grid.cells(z_range=(first, last))
         keep = (every[:, 2] >= first) & (every[:, 2] <= last)
@@ -87,6 +100,24 @@ def test_cells_of_some_layers(block: int) -> None:
         assert band_values.dtype == np.float64
     assert len(grid.cells(z_range=(20, 22))[0]) > 0
     assert len(grid.cells(z_range=(-40, 60))[0]) == len(every)
+
+
+@pytest.mark.parametrize("block", [16, 8, 6])
+def test_known_blocks_are_the_dense_blocks_packed(block: int) -> None:
+    sensor = np.array([2.0, 1.5, 1.0])
+    grid = OccupancyGrid(GridParams(block_size_cells=block))
+    grid.integrate_scan(room_scan(sensor), sensor)
+    coords, values = grid.blocks()
+    known_coords, bits, known_values = grid.known_blocks()
+    flat = values.reshape(len(coords), -1)
+    known = ~np.isnan(flat)
+    assert np.array_equal(known_coords, coords)
+    assert np.array_equal(bits, np.packbits(known, axis=1, bitorder="little"))
+    assert known_values.dtype == np.float32
+    assert np.array_equal(known_values.astype(np.float64), flat[known])
+    assert len(known_values) == grid.known_count() > 1000
+    empty = OccupancyGrid(GridParams(block_size_cells=block)).known_blocks()
+    assert [a.shape for a in empty] == [(0, 3), (0, (block**3 + 7) // 8), (0,)]
 
 
 def test_origin_shifts_the_lattice() -> None:

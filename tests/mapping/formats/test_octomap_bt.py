@@ -6,10 +6,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mapping.band import extract_band
 from mapping.errors import MapError
-from mapping.formats.octomap_bt import decode_bt, encode_bt, grid_from_bt, read_bt, write_bt
+from mapping.formats.octomap_bt import (
+    KEY_OFFSET,
+    decode_bt,
+    encode_bt,
+    grid_from_bt,
+    read_bt,
+    write_bt,
+)
 from mapping.grid import GridParams, OccupancyGrid
 from tests.mapping.conftest import FR079, requires_fr079, room_scan
 
@@ -104,6 +113,144 @@ def test_geb079_ceiling_band_occupied_cells(geb079: object) -> None:
     assert len(columns) == occupied_columns
     assert round(band.occupancy.sum() * 3) == int(occupied.sum())
     assert band.known.sum() > 3 * occupied_columns  # observed free space around the walls
+
+
+DEPTH = 16
+_FREE, _OCCUPIED, _INNER = 1, 2, 3
+
+
+def _morton_keys(keys: np.ndarray) -> np.ndarray:
+    """48-bit codes whose 3-bit digits, most significant first, are the child indices."""
+    code = np.zeros(len(keys), dtype=np.int64)
+    for bit in range(DEPTH):
+        for axis in range(3):
+            code |= ((keys[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+def reference_encode(cells: np.ndarray, occupied: np.ndarray) -> tuple[int, bytes]:
+    """The tree's node count and stream as the encoder wrote them level by level in numpy
+    until stop 50 (the reference the depth-first encoder must match byte for byte)."""
+    codes = _morton_keys(np.asarray(cells, dtype=np.int64) + KEY_OFFSET)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    states = np.where(occupied[order], _OCCUPIED, _FREE).astype(np.int64)
+    # Prune bottom-up: 8 siblings that are all leaves in one state become their parent.
+    leaf_codes: list[np.ndarray] = []
+    leaf_states: list[np.ndarray] = []
+    leaf_depths: list[np.ndarray] = []
+    for depth in range(DEPTH, 0, -1):
+        if depth == 1 or len(codes) == 0:
+            final = np.ones(len(codes), dtype=bool)
+        else:
+            parents = codes >> 3
+            starts = np.flatnonzero(np.r_[True, parents[1:] != parents[:-1]])
+            sizes = np.diff(np.r_[starts, len(codes)])
+            same = np.minimum.reduceat(states, starts) == np.maximum.reduceat(states, starts)
+            merge_group = (sizes == 8) & same
+            final = ~np.repeat(merge_group, sizes)
+        leaf_codes.append(codes[final])
+        leaf_states.append(states[final])
+        leaf_depths.append(np.full(int(final.sum()), depth))
+        if depth > 1 and len(codes):
+            codes = parents[starts[merge_group]]
+            states = states[starts[merge_group]]
+    all_codes = np.concatenate(leaf_codes)
+    all_states = np.concatenate(leaf_states)
+    all_depths = np.concatenate(leaf_depths)
+    if len(all_codes) == 0:
+        return 0, b""
+    # Inner nodes: every ancestor (depth 0 … d − 1) of every leaf; children's codes per node.
+    inner_codes, inner_depths, inner_words = [], [], []
+    children: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    for depth in range(DEPTH - 1, -1, -1):
+        deeper_leaf = all_depths == depth + 1
+        child_codes = [all_codes[deeper_leaf]]
+        child_values = [all_states[deeper_leaf]]
+        if depth + 1 in children:
+            child_codes.append(children[depth + 1][0])
+            child_values.append(np.full(len(children[depth + 1][0]), _INNER))
+        kids = np.concatenate(child_codes)
+        values = np.concatenate(child_values)
+        if len(kids) == 0:
+            continue
+        parents = kids >> 3
+        unique, inverse = np.unique(parents, return_inverse=True)
+        words = np.zeros(len(unique), dtype=np.int64)
+        np.add.at(words, inverse, values << (2 * (kids & 7)))
+        children[depth] = (unique, words)
+        inner_codes.append(unique)
+        inner_depths.append(np.full(len(unique), depth))
+        inner_words.append(words)
+    codes_all = np.concatenate(inner_codes)
+    depths_all = np.concatenate(inner_depths)
+    words_all = np.concatenate(inner_words)
+    # Depth-first pre-order: sort by the code padded to full depth, ancestors first.
+    padded = codes_all << (3 * (DEPTH - depths_all))
+    preorder = np.lexsort((depths_all, padded))
+    stream = words_all[preorder].astype("<u2").tobytes()
+    return len(codes_all) + len(all_codes), stream
+
+
+def split_encoded(data: bytes) -> tuple[int, bytes]:
+    head, _, stream = data.partition(b"\ndata\n")
+    return int(head.split(b"\nsize ")[1].split(b"\n")[0]), stream
+
+
+@st.composite
+def cell_sets(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray]:
+    """Unique cells in a few clusters (so that whole octants fill and prune), some anywhere in
+    OctoMap's key range, with random or uniform states."""
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    parts = []
+    for _ in range(draw(st.integers(0, 4))):
+        edge = draw(st.sampled_from([1, 2, 4, 8, 16]))
+        corner = rng.integers(-40, 40, 3) * draw(st.sampled_from([1, 2, 8]))
+        cube = np.stack(np.meshgrid(*[np.arange(edge)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        keep = rng.random(len(cube)) < draw(st.sampled_from([1.0, 0.97, 0.5]))
+        parts.append(corner + cube[keep])
+    parts.append(rng.integers(-KEY_OFFSET, KEY_OFFSET, (draw(st.integers(0, 30)), 3)))
+    cells = np.unique(np.concatenate(parts), axis=0)
+    cells = cells[rng.permutation(len(cells))]
+    mode = draw(st.sampled_from(["random", "free", "occupied", "by_octant"]))
+    if mode == "random":
+        occupied = rng.random(len(cells)) < 0.3
+    elif mode == "by_octant":
+        occupied = (cells // 4).sum(axis=1) % 2 == 0
+    else:
+        occupied = np.full(len(cells), mode == "occupied")
+    return cells, occupied
+
+
+@settings(max_examples=300, deadline=None)
+@given(cell_sets())
+def test_the_encoder_matches_the_level_by_level_reference(
+    cells_states: tuple[np.ndarray, np.ndarray],
+) -> None:
+    cells, occupied = cells_states
+    size, stream = split_encoded(encode_bt(cells, occupied, 0.1))
+    assert (size, stream) == reference_encode(cells, occupied)
+    # And it reads back to the same cells and states.
+    back, states = decode_bt(encode_bt(cells, occupied, 0.1)).expand()
+    order, back_order = np.lexsort(cells.T), np.lexsort(back.T)
+    np.testing.assert_array_equal(back[back_order], cells[order])
+    np.testing.assert_array_equal(states[back_order], occupied[order])
+
+
+def test_the_encoder_prunes_whole_octants_up_to_below_the_root() -> None:
+    # A full cube of 2^5 cells a side, all free: one leaf at depth 11, inside 11 inner nodes.
+    cube = np.stack(np.meshgrid(*[np.arange(32)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    size, stream = split_encoded(encode_bt(cube, np.zeros(len(cube), bool), 0.1))
+    assert (size, len(stream)) == (12, 22)
+    tree = decode_bt(encode_bt(cube, np.zeros(len(cube), bool), 0.1))
+    assert tree.depth.tolist() == [11]
+    assert not tree.occupied[0]
+    # One cell occupied: its octants split down to single cells: 16 inner nodes, 7 leaves
+    # beside each of the 4 split octants below depth 11 and the 8 cells of the last.
+    states = np.zeros(len(cube), bool)
+    states[0] = True
+    size, _ = split_encoded(encode_bt(cube, states, 0.1))
+    assert size == reference_encode(cube, states)[0] == 16 + 4 * 7 + 8
 
 
 def test_pyoctomap_reads_what_we_write(tmp_path: Path) -> None:
