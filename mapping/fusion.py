@@ -125,9 +125,8 @@ def merge_grids(grids: Sequence[OccupancyGrid]) -> OccupancyGrid:
 
 def _target_blocks(grid: OccupancyGrid, T_a_b: np.ndarray, params: GridParams) -> np.ndarray:
     """Blocks of a grid in frame a that can receive cells of ``grid`` (frame b) moved by T_a_b."""
-    coords, values = grid.blocks()
-    has_known = ~np.isnan(values).all(axis=(1, 2, 3))
-    coords = coords[has_known]
+    coords, known, _ = grid.known_blocks()
+    coords = coords[known.any(axis=1)]
     if len(coords) == 0:
         return np.zeros((0, 3), dtype=np.int64)
     src_edge = grid.params.block_size_cells * grid.resolution_m
