@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Self
+from typing import Any, Self
 
 import numpy as np
 
@@ -31,6 +31,8 @@ class _Peak:
 
 
 _TWO_PI = 2.0 * math.pi
+#: What a pickled ``PosePdf`` holds.
+_STATE = ("x_m", "y_m", "yaw_rad", "_raw", "_total", "_steps")
 
 
 def _lattice(name: str, values: np.ndarray) -> tuple[np.ndarray, float]:
@@ -48,46 +50,102 @@ def _lattice(name: str, values: np.ndarray) -> tuple[np.ndarray, float]:
     return values, step
 
 
-@dataclass(frozen=True, eq=False)
 class PosePdf:
     """Normalised probabilities ``prob[t, y, x]`` of the pose ``(x_m[x], y_m[y], yaw_rad[t])``.
 
     The pose is that of some frame (a station's robot frame) in a reference frame (the map, or an
-    earlier station): whatever the search was asked for. Arrays are copied and made read-only.
+    earlier station): whatever the search was asked for. Arrays are copied and made read-only;
+    the object is immutable and equal only to itself.
+
+    A search's float32 probabilities are kept as float32, with their float64 sum: ``prob`` and
+    every answer are those of the float64 array ``prob / sum`` — the same numbers, bit for bit,
+    as normalising a float64 copy — at half its memory (a loop closure's window holds up to
+    1.6 M poses: 6 MB a PDF instead of 12.5, for as long as the graph keeps it). Float64 input
+    is normalised and kept as float64.
     """
+
+    __slots__ = ("_cache", "_raw", "_steps", "_total", "x_m", "y_m", "yaw_rad")
 
     x_m: np.ndarray
     y_m: np.ndarray
     yaw_rad: np.ndarray
-    prob: np.ndarray
+    _raw: np.ndarray  # the probabilities as given (float32), or normalised (float64)
+    _total: np.float64  # their sum (1 for float64)
+    _steps: tuple[float, float, float]
+    _cache: dict[object, Any]
 
-    def __post_init__(self) -> None:
+    def __init__(
+        self, x_m: np.ndarray, y_m: np.ndarray, yaw_rad: np.ndarray, prob: np.ndarray
+    ) -> None:
         lattices = {}
-        for name in ("x_m", "y_m", "yaw_rad"):
-            values, step = _lattice(name, getattr(self, name))
+        for name, given in (("x_m", x_m), ("y_m", y_m), ("yaw_rad", yaw_rad)):
+            values, step = _lattice(name, given)
             values.setflags(write=False)
             object.__setattr__(self, name, values)
             lattices[name] = step
-        prob = np.array(self.prob, dtype=float)
+        single = np.asarray(prob).dtype == np.float32
+        raw = np.array(prob, dtype=np.float32 if single else float)
         shape = (len(self.yaw_rad), len(self.y_m), len(self.x_m))
-        if prob.shape != shape:
+        if raw.shape != shape:
             raise EstimationError(
-                f"PosePdf: prob must have shape (T, Y, X) = {shape}, got {prob.shape}"
+                f"PosePdf: prob must have shape (T, Y, X) = {shape}, got {raw.shape}"
             )
-        if not np.isfinite(prob).all() or prob.min() < 0:
+        if not np.isfinite(raw).all() or raw.min() < 0:
             raise EstimationError("PosePdf: prob must be finite and non-negative")
-        total = prob.sum()
+        # The sum of the float64 values (the same pairwise sum a float64 copy would give).
+        total = (raw.astype(float) if single else raw).sum()
         # A PDF summed in float32 over millions of cells is off by ~1e-6; renormalise such
         # rounding, reject anything larger.
         if abs(total - 1.0) > 1e-4:
             raise EstimationError(f"PosePdf: prob must sum to 1, sums to {total:.9g}")
-        prob /= total
+        if not single:
+            raw /= total
+            total = np.float64(1.0)
         if lattices["yaw_rad"] * len(self.yaw_rad) > _TWO_PI + 1e-9:
             raise EstimationError("PosePdf: yaw_rad lattice covers more than 2π")
-        prob.setflags(write=False)
-        object.__setattr__(self, "prob", prob)
+        raw.setflags(write=False)
+        object.__setattr__(self, "_raw", raw)
+        object.__setattr__(self, "_total", total)
         object.__setattr__(self, "_steps", (lattices["x_m"], lattices["y_m"], lattices["yaw_rad"]))
         object.__setattr__(self, "_cache", {})
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"PosePdf is immutable: cannot set {name!r}")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"PosePdf is immutable: cannot delete {name!r}")
+
+    def __getstate__(self) -> dict[str, object]:
+        # Pickled between a mission's processes; the cache is made again.
+        return {name: getattr(self, name) for name in _STATE}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        for name in _STATE:
+            value = state[name]
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "_cache", {})
+
+    def __repr__(self) -> str:
+        return f"PosePdf({len(self.yaw_rad)} × {len(self.y_m)} × {len(self.x_m)} poses)"
+
+    @property
+    def prob(self) -> np.ndarray:
+        """(T, Y, X) float64 probabilities summing to 1 (made on each call, read-only)."""
+        prob = self._raw.astype(float)
+        prob /= self._total
+        prob.setflags(write=False)
+        return prob
+
+    @property
+    def nbytes(self) -> int:
+        """The memory the probabilities take."""
+        return int(self._raw.nbytes)
+
+    def _value(self, index: tuple[int, ...]) -> float:
+        """The probability of one cell (``prob[index]``, without making ``prob``)."""
+        return float(self._raw[index] / self._total)
 
     # -- construction -----------------------------------------------------------------------
 
@@ -123,8 +181,7 @@ class PosePdf:
     @property
     def steps(self) -> tuple[float, float, float]:
         """Lattice steps (x_m, y_m, yaw_rad); 0 along an axis of one sample."""
-        steps: tuple[float, float, float] = object.__getattribute__(self, "_steps")
-        return steps
+        return self._steps
 
     @property
     def yaw_wraps(self) -> bool:
@@ -166,14 +223,16 @@ class PosePdf:
 
     def best_index(self) -> tuple[int, int, int]:
         """``(t, y, x)`` of the most probable cell."""
-        t, y, x = np.unravel_index(int(np.argmax(self.prob)), self.prob.shape)
+        # float32 values keep their order when divided by the sum in float64 (their quotients
+        # are at least 2^-24 apart, float64 rounds at 2^-53): the same cell as prob's argmax.
+        t, y, x = np.unravel_index(int(np.argmax(self._raw)), self._raw.shape)
         return int(t), int(y), int(x)
 
     def best_pose(self, refine: bool = True) -> np.ndarray:
         """The most probable pose. With ``refine``, one Newton step on the log-probability (a
         quadratic through the peak's 3×3×3 neighbourhood, cross terms included) places it between
         lattice points — exact for a Gaussian peak; the step is clipped to one cell."""
-        cache: dict[object, np.ndarray] = object.__getattribute__(self, "_cache")
+        cache = self._cache
         cached = cache.get(("best", refine))
         if cached is None:
             cached = cache[("best", refine)] = self._best_pose(refine)
@@ -189,7 +248,7 @@ class PosePdf:
         for k, (axis, step) in enumerate(
             ((2, self.steps[0]), (1, self.steps[1]), (0, self.steps[2]))
         ):
-            n, i = self.prob.shape[axis], index[axis]
+            n, i = self._raw.shape[axis], index[axis]
             if step > 0 and ((axis == 0 and self.yaw_wraps) or 0 < i < n - 1):
                 usable.append((k, axis, step))
         if not usable:
@@ -198,8 +257,8 @@ class PosePdf:
         def log_p(offsets: dict[int, int]) -> float:
             cell = list(index)
             for axis, o in offsets.items():
-                cell[axis] = (cell[axis] + o) % self.prob.shape[axis]
-            value = float(self.prob[tuple(cell)])
+                cell[axis] = (cell[axis] + o) % self._raw.shape[axis]
+            value = self._value(tuple(cell))
             return math.log(value) if value > 0 else -math.inf
 
         m = len(usable)
@@ -231,7 +290,7 @@ class PosePdf:
     def _peak(self, peak_radius_m: float, peak_radius_rad: float) -> _Peak:
         """The peak's neighbourhood (cells within the radii of the best cell), computed on the
         sub-box around the best cell only, and cached: PDFs of a full search are large."""
-        cache: dict[object, _Peak] = object.__getattribute__(self, "_cache")
+        cache = self._cache
         cached = cache.get((peak_radius_m, peak_radius_rad))
         if cached is not None:
             return cached
@@ -256,12 +315,12 @@ class PosePdf:
         inside = (np.hypot(delta[..., 0], delta[..., 1]) <= peak_radius_m + 1e-12) & (
             np.abs(delta[..., 2]) <= peak_radius_rad + 1e-12
         )
-        rest = self.prob.copy()
-        rest[box] = np.where(inside, 0.0, self.prob[box])
+        rest = self._raw.copy()
+        rest[box] = np.where(inside, 0.0, self._raw[box])
         peak = _Peak(
-            weights=self.prob[box][inside],
+            weights=self._raw[box][inside].astype(float) / self._total,
             offsets=delta[inside],
-            elsewhere=float(rest.max()),
+            elsewhere=float(rest.max() / self._total),
         )
         cache[(peak_radius_m, peak_radius_rad)] = peak
         return peak
@@ -272,7 +331,7 @@ class PosePdf:
         The neighbourhood: within ``peak_radius_m`` and ``peak_radius_rad`` of the best cell.
         """
         elsewhere = self._peak(peak_radius_m, peak_radius_rad).elsewhere
-        return math.inf if elsewhere <= 0 else float(self.prob.max()) / elsewhere
+        return math.inf if elsewhere <= 0 else float(self._raw.max() / self._total) / elsewhere
 
     def is_dominant(
         self, dominance_ratio: float, peak_radius_m: float = 0.5, peak_radius_rad: float = 0.1745
@@ -314,7 +373,7 @@ class PosePdf:
         Poses outside the lattice are outside the region.
         """
         index = self.nearest_index(pose)
-        return index is not None and bool(self.prob[index] >= self.density_threshold(mass))
+        return index is not None and self._value(index) >= self.density_threshold(mass)
 
     def mass_above(self, pose: np.ndarray) -> float:
         """Probability of the cells more probable than ``pose``'s cell (1 outside the lattice):
@@ -322,4 +381,5 @@ class PosePdf:
         index = self.nearest_index(pose)
         if index is None:
             return 1.0
-        return float(self.prob[self.prob > self.prob[index]].sum())
+        prob = self.prob
+        return float(prob[prob > prob[index]].sum())

@@ -149,7 +149,7 @@ class SearchResult:
 
     @cached_property
     def pdf(self) -> PosePdf:
-        """The whole normalised PDF as a ``PosePdf`` (a float64 copy, built on first use)."""
+        """The whole normalised PDF as a ``PosePdf`` (a copy of ``prob``, built on first use)."""
         return PosePdf(self.x_m, self.y_m, self.yaw_rad, self.prob)
 
     @property

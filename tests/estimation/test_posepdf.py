@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimation.errors import EstimationError
 from estimation.posegraph.seed import seed_pose
@@ -153,6 +156,55 @@ def test_pdf_arrays_are_read_only_copies() -> None:
     assert pdf.prob[0, 0, 0] == pytest.approx(1 / 8)
     with pytest.raises(ValueError, match="read-only"):
         pdf.prob[0, 0, 0] = 1.0
+
+    with pytest.raises(AttributeError, match="immutable"):
+        pdf.x_m = X
+    single = PosePdf(X[:2], Y[:2], FULL_YAW[:2], np.full((2, 2, 2), 0.125, np.float32))
+    assert single.prob[0, 0, 0] == pytest.approx(1 / 8)
+    with pytest.raises(ValueError, match="read-only"):
+        single.prob[0, 0, 0] = 1.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([1.0, 0.05, 1e-3]), st.booleans())
+def test_float32_probabilities_give_the_float64_answers_bit_for_bit(
+    seed: int, contrast: float, full_circle: bool
+) -> None:
+    # A search's float32 PDF (summing to 1 within float32's rounding) kept as float32 answers
+    # exactly as its float64 copy normalised in float64 (the way PosePdf kept it before).
+    rng = np.random.default_rng(seed)
+    yaw = FULL_YAW[::12] if full_circle else FULL_YAW[100:140]
+    scores = rng.random((len(yaw), len(Y), len(X))) * contrast
+    t, y, x = (int(rng.integers(0, n)) for n in scores.shape)
+    scores[t, y, x] += 1.0
+    scores[max(t - 1, 0), y, x] += 0.5 * rng.random()
+    scores[t, rng.integers(0, len(Y)), rng.integers(0, len(X))] = scores.max()  # a tie
+    prob = (scores / scores.sum()).astype(np.float32)
+    single, double = PosePdf(X, Y, yaw, prob), PosePdf(X, Y, yaw, prob.astype(np.float64))
+    assert single.nbytes * 2 == double.nbytes
+    assert np.array_equal(single.prob, double.prob)
+    assert single.best_index() == double.best_index()
+    assert np.array_equal(single.best_pose(), double.best_pose())
+    for radius_m, radius_rad in ((0.5, 0.1745), (0.1, 0.05)):
+        assert single.peak_ratio(radius_m, radius_rad) == double.peak_ratio(radius_m, radius_rad)
+        assert np.array_equal(single.covariance(radius_m, radius_rad),
+                              double.covariance(radius_m, radius_rad))  # fmt: skip
+    for mass in (0.5, 0.9, 0.999):
+        assert single.density_threshold(mass) == double.density_threshold(mass)
+        assert np.array_equal(single.region(mass), double.region(mass))
+    for _ in range(5):
+        pose = np.array([rng.uniform(-1.1, 1.1), rng.uniform(-0.9, 0.9), rng.uniform(-4, 4)])
+        assert single.mass_above(pose) == double.mass_above(pose)
+        assert single.contains(pose, 0.9) == double.contains(pose, 0.9)
+    # As a mission's processes pass it on.
+    back = pickle.loads(pickle.dumps(single))
+    assert np.array_equal(back.prob, single.prob)
+    assert back.nbytes == single.nbytes
+    assert np.array_equal(back.covariance(), single.covariance())
+    with pytest.raises(ValueError, match="read-only"):
+        back.x_m[0] = 1.0
+    with pytest.raises(AttributeError, match="immutable"):
+        back.x_m = X
 
 
 def test_seed_uses_the_search_only_when_its_peak_is_dominant() -> None:
