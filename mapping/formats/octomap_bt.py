@@ -335,7 +335,7 @@ def _tree_stream(packed: np.ndarray) -> tuple[np.ndarray, int]:
         if packed[i] >> 2 == packed[i - 1] >> 2:
             return np.zeros(0, dtype=np.uint16), -1
     words = np.empty(max(n // 4, 64), dtype=np.uint16)
-    top = 0  # words written
+    top = 1  # words written: the root's is reserved
     nodes = 0  # inner nodes and leaves in the written words
     # Per depth: the node's range end, its next child's first code, the next child's digit,
     # where its word is, the word, children present, children that are leaves, and their
@@ -349,8 +349,7 @@ def _tree_stream(packed: np.ndarray) -> tuple[np.ndarray, int]:
     leaves = np.zeros(TREE_DEPTH, dtype=np.int64)
     common = np.zeros(TREE_DEPTH, dtype=np.int64)
     d = 0
-    end[0], cursor[0], at[0] = n, 0, 0
-    top = 1
+    end[0] = n
     while True:
         if digit[d] == 8:  # the node at depth d is complete
             if d > 0 and kids[d] == 8 and common[d] != _INNER:
