@@ -29,12 +29,14 @@ def _no_returns() -> np.ndarray:
 class Scan:
     """One 3D scan in its scanner's frame: returns, and directions of beams without a return."""
 
-    points_scanner: np.ndarray  # (N, 3) metres
+    points_scanner: np.ndarray  # (N, 3) metres, float64 or float32 (kept as given)
     no_return_scanner: np.ndarray = field(default_factory=_no_returns)  # (M, 3) directions
 
     def __post_init__(self) -> None:
         for name in ("points_scanner", "no_return_scanner"):
-            value = np.asarray(getattr(self, name), dtype=np.float64)
+            value = np.asarray(getattr(self, name))
+            if value.dtype != np.float32:  # float32 points are moved into float64 scan by scan
+                value = np.asarray(value, dtype=np.float64)
             if value.ndim != 2 or value.shape[1] != 3:
                 raise MapError(f"Scan.{name} must be (N, 3), got {value.shape}")
             object.__setattr__(self, name, value)

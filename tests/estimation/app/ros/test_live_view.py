@@ -57,6 +57,9 @@ class FoxgloveClient:
     binary opcode 0x01: subscription id, log time, message bytes)."""
 
     def __init__(self, port: int, timeout_s: float = TIMEOUT_S) -> None:
+        # Each wait (the handshake, for topics, for a message) gets ``timeout_s`` of its own: a
+        # client that waits while a mission flies must not run out of time on a loaded machine.
+        self.timeout_s = timeout_s
         self.deadline = time.monotonic() + timeout_s
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S)
         key = base64.b64encode(os.urandom(16)).decode()
@@ -139,6 +142,7 @@ class FoxgloveClient:
 
     def wait_for_topics(self, topics: set[str]) -> dict[str, dict[str, Any]]:
         """Read until every topic of ``topics`` is advertised; the advertised channels."""
+        self.deadline = time.monotonic() + self.timeout_s
         while not topics <= {c["topic"] for c in self.channels.values()}:
             opcode, payload = self.frame()
             if opcode == 0x1:
@@ -157,6 +161,7 @@ class FoxgloveClient:
     def message(self, topic: str) -> tuple[int, bytes]:
         """The next message on ``topic``: (log time ns, CDR bytes); those of other topics
         that come first are kept for later."""
+        self.deadline = time.monotonic() + self.timeout_s
         while not self.pending.get(topic):
             opcode, payload = self.frame()
             if opcode == 0x1:
