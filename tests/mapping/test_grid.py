@@ -71,17 +71,23 @@ def test_queries_on_known_and_unknown_cells() -> None:
     assert grid.cell_of(np.array([[-0.01, 0.0, 0.25]])).tolist() == [[-1, 0, 2]]
 
 
-@pytest.mark.parametrize("block", [16, 8, 6])
-def test_cells_of_some_layers(block: int) -> None:
+def scanned_room(block: int) -> OccupancyGrid:
+    """A grid of blocks of ``block`` cells holding one scan of the room."""
     sensor = np.array([2.0, 1.5, 1.0])
     grid = OccupancyGrid(GridParams(block_size_cells=block))
     grid.integrate_scan(room_scan(sensor), sensor)
+    return grid
+
+
+@pytest.mark.parametrize("block", [16, 8, 6])
+def test_cells_of_some_layers(block: int) -> None:
+    grid = scanned_room(block)
     every, values = grid.cells()
     # Every layer: what unpacking the known bits block by block (np.nonzero's order) gives.
     n = grid.block_count
-    cells, block, flat = grid._decode(grid._store.coords[:n], grid._store.known[:n])
+    cells, rows, flat = grid._decode(grid._store.coords[:n], grid._store.known[:n])
     assert np.array_equal(every, cells)
-    assert np.array_equal(values, grid._store.logodds[:n][block, flat].astype(np.float64))
+    assert np.array_equal(values, grid._store.logodds[:n][rows, flat].astype(np.float64))
     # Arrays of just the known cells (not views of a buffer for every cell of the blocks).
     tracemalloc.start()
     try:
@@ -104,9 +110,7 @@ def test_cells_of_some_layers(block: int) -> None:
 
 @pytest.mark.parametrize("block", [16, 8, 6])
 def test_known_blocks_are_the_dense_blocks_packed(block: int) -> None:
-    sensor = np.array([2.0, 1.5, 1.0])
-    grid = OccupancyGrid(GridParams(block_size_cells=block))
-    grid.integrate_scan(room_scan(sensor), sensor)
+    grid = scanned_room(block)
     coords, values = grid.blocks()
     known_coords, bits, known_values = grid.known_blocks()
     flat = values.reshape(len(coords), -1)
