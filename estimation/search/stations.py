@@ -490,7 +490,7 @@ def loop_closures(
         covariance = closure.uncertainty + measured
         chi2_value = float(offset @ np.linalg.solve(covariance, offset))
         use = refined.sound and chi2_value < _LOOP_GATE
-        # Its PDF (a float64 copy of up to 1.6 M poses) is made here, on the searches' threads.
+        # Its PDF (a copy of up to 1.6 M poses) is made here, on the searches' threads.
         event = refined.event(closure.station, closure.anchor, None, result) if use else None
         return refined, event, time.perf_counter() - started
 

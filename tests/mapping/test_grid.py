@@ -85,7 +85,9 @@ def test_cells_of_some_layers(block: int) -> None:
     every, values = grid.cells()
     # Every layer: what unpacking the known bits block by block (np.nonzero's order) gives.
     n = grid.block_count
-    cells, rows, flat = grid._decode(grid._store.coords[:n], grid._store.known[:n])
+    bits = np.unpackbits(grid._store.known[:n], axis=1, bitorder="little")[:, : block**3]
+    rows, flat = np.nonzero(bits)
+    cells = grid._store.coords[:n][rows] * block + grid._local_of_flat()[flat]
     assert np.array_equal(every, cells)
     assert np.array_equal(values, grid._store.logodds[:n][rows, flat].astype(np.float64))
     # Arrays of just the known cells (not views of a buffer for every cell of the blocks).

@@ -149,7 +149,7 @@ def test_simulated_sweep_to_3d_points_matches_ray_cast_truth(essex_scene: Raycas
         assert sweep.end_s - sweep.start_s == pytest.approx(10.0, abs=0.3)
         trimmed = sweep.trimmed()  # points (in float32) and reflector marks only
         assert trimmed.points_scanner.dtype == np.float32
-        # Rounded only: within float32's half ulp of every coordinate (< 1 µm here).
+        # Rounded only: within float32's half ulp of every coordinate (< 1 µm within 8 m).
         np.testing.assert_allclose(trimmed.points_scanner, sweep.points_scanner,
                                    rtol=2.0**-24, atol=0.0)  # fmt: skip
         assert trimmed.reflector is sweep.reflector
