@@ -14,7 +14,7 @@ import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -360,7 +360,8 @@ def _pair(
     2.666 m away, and the pair, 182 cm and 46° off, passed every gate).
 
     Before all of these but agreement, a pair that closes a triangle with a third robot comes
-    first: the third's sweep and the two robots' other detections give the A–T and T–C
+    first (and a detection that closure tests is no longer counted as the third's beacon): the
+    third's sweep and the two robots' other detections give the A–T and T–C
     relative poses, and through T they place C where the pair does (:func:`_closing`). Only
     that tells the assignments apart when the three stand nearly symmetric (building 106: b
     saw a's beacon 2.29 m away and c's 2.25 m away, 16° apart, c saw b's 2.29 m away; every
@@ -376,6 +377,7 @@ def _pair(
         for j, c in enumerate(seen_c):
             gap, spread = _gap(a, c, s)
             agree = gap <= s.gate_sigmas * spread
+            closes = closing.get((i, j), _Closes(0, False, False))
             if predicted is None:
                 third, near, taken = False, gap, False
             else:
@@ -385,14 +387,15 @@ def _pair(
                 )
                 third = third_a or third_c
                 near = _apart(a, predicted[0]) + _apart(c, predicted[1])
-                taken = (third_a and _claimed(a, thirds, s)) or (third_c and _claimed(c, thirds, s))
-                taken = (
-                    taken
-                    or _placed(a, predicted[0], others[0])
-                    or _placed(c, predicted[1], others[1])
+                taken_a = (third_a and _claimed(a, thirds, s)) or _placed(
+                    a, predicted[0], others[0]
                 )
-            closes = closing.get((i, j), 0)
-            rows.append((not agree, -closes, taken and not closes, third, near,
+                taken_c = (third_c and _claimed(c, thirds, s)) or _placed(
+                    c, predicted[1], others[1]
+                )
+                # A closure clears only the detections it tests (:class:`_Closes`).
+                taken = (taken_a and not closes.a) or (taken_c and not closes.c)
+            rows.append((not agree, -closes.level, taken, third, near,
                          -(a.quality + c.quality), i, j))  # fmt: skip
     best = min(rows)
     if best[2]:
@@ -407,21 +410,36 @@ def _z(first: BeaconDetection, second: BeaconDetection) -> tuple[float, float, f
     return (first.range_m, first.bearing_rad, second.range_m, second.bearing_rad)
 
 
+class _Closes(NamedTuple):
+    """How a pair of detections (A's of C's beacon, C's of A's) closes with a third robot: the
+    level (2 a whole triangle, 1 a one-way sighting), and whether that closure tests A's
+    detection (``a``) and C's (``c``). A third robot's sighting of A's beacon, placed through
+    its observation with C, tests C's detection of A's beacon and not A's bearing to C's: A's
+    heading is free in it (generated building 402, three robots standing 2.2 m apart: a saw
+    only b's beacon, and the pair with c's true detection of a passed through b's sighting of
+    a's beacon, 35 cm and 61° off)."""
+
+    level: int
+    a: bool
+    c: bool
+
+
 def _closing(
     seen_a: list[BeaconDetection],
     seen_c: list[BeaconDetection],
     thirds: Sequence[list[BeaconDetection]],
     s: GraphSettings,
-) -> dict[tuple[int, int], int]:
+) -> dict[tuple[int, int], _Closes]:
     """How well each pair (i, j) of A's and C's detections (A's of C's beacon, C's of A's)
     closes a triangle with a third robot T: 2 when a whole triangle closes (A's other detection
     i' and T's k agree as A–T's mutual observation, C's other j' and T's other k' as T–C's, and
     C's pose through T matches the pair's: :func:`~estimation.posegraph.mutual.closure_distance`,
     99.9 %); 1 when one mutual observation with T and the pair place a one-way sighting that a
     third sweep holds (:func:`~estimation.posegraph.mutual.sighting_distance`, 99.9 %: T's
-    beacon where the robot not in that observation saw it, or its beacon where T saw it).
-    Pairs that close nothing are left out."""
-    out: dict[tuple[int, int], int] = {}
+    beacon where the robot not in that observation saw it, or its beacon where T saw it), with
+    the detections each closure tests (:class:`_Closes`). Pairs that close nothing are left
+    out."""
+    out: dict[tuple[int, int], _Closes] = {}
     d, sr, sb = s.beacon_offset_m, s.range_sigma_m, s.bearing_sigma_rad
     pairs = list(itertools.product(range(len(seen_a)), range(len(seen_c))))
     for seen_t in thirds:
@@ -438,7 +456,7 @@ def _closing(
             d2 = closure_distance(z_ac, z_at, z_tc, d, sr, sb)
             for (i, j, *_), value in zip(whole, d2, strict=True):
                 if value <= _CLOSURE_CHI2:
-                    out[i, j] = 2
+                    out[i, j] = _Closes(2, True, True)
         # One observation with T, and a sighting of or by the robot not in it.
         one: list[tuple[int, int, tuple[float, ...], tuple[float, float], str, int]] = []
         sides = (("A", [(i2, k, _z(seen_a[i2], seen_t[k])) for i2, k in at], seen_c),
@@ -465,9 +483,14 @@ def _closing(
                 np.array([r[2] for r in rows]), np.array([r[3] for r in rows]),
                 through, observer, d, sr, sb,  # type: ignore[arg-type]
             )  # fmt: skip
+            # T's sighting of X's beacon tests only the detection of X's beacon in the pair
+            # (made by the robot T observed with); X's sighting of T's beacon tests both.
+            tests_a, tests_c = observer == 0 or through == "A", observer == 0 or through == "C"
             for r, value in zip(rows, d2, strict=True):
                 if value <= _SIGHTING_CHI2:
-                    out[r[0], r[1]] = max(out.get((r[0], r[1]), 0), 1)
+                    was = out.get((r[0], r[1]), _Closes(0, False, False))
+                    out[r[0], r[1]] = _Closes(max(was.level, 1), was.a or tests_a,
+                                              was.c or tests_c)  # fmt: skip
     return out
 
 

@@ -47,6 +47,7 @@ from estimation.posegraph.graph import FactorSpec, GraphBuilder
 from estimation.posegraph.keys import key_label, pose_key, split_key
 from estimation.posegraph.marginals import marginal_covariances
 from estimation.posegraph.smoother import BatchResult, IncrementalSmoother, optimize_batch
+from estimation.posegraph.structure import connected
 from estimation.posegraph.validate import validate_and_repair
 from estimation.search.records import SearchRecord, records_json
 from estimation.search.relocalization import relocalize
@@ -175,24 +176,6 @@ def decoding_worker(
     size = sum(c.stat().st_size for c in captures if c.is_file())
     return worker_beside(["estimation.app.dataset"],
                          len(captures) > 1 and size >= DECODE_WORKER_BYTES)  # fmt: skip
-
-
-def _connected(factors: list[FactorSpec], root: int) -> set[int]:
-    parent: dict[int, int] = {}
-
-    def find(k: int) -> int:
-        parent.setdefault(k, k)
-        while parent[k] != k:
-            parent[k] = parent[parent[k]]
-            k = parent[k]
-        return k
-
-    for f in factors:
-        for k in f.keys:
-            find(k)
-        for k in f.keys[1:]:
-            parent[find(k)] = find(f.keys[0])
-    return {k for k in parent if find(k) == find(root)}
 
 
 def _as_used(records: list[SearchRecord], factors: bool) -> list[SearchRecord]:
@@ -361,7 +344,7 @@ def _search_stages(
     config = dataset.config
     gauge = pose_key(dataset.robots[0], 0)
     clock = time.perf_counter()
-    keep = _connected(builder.factors, gauge)
+    keep = connected(builder.factors, gauge)
     factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
     initial = {k: v for k, v in builder.initial_values().items() if k in keep}
     if not initial:
@@ -386,7 +369,7 @@ def _search_stages(
         for event in found:
             builder.add(event)
         events += found
-        keep = _connected(builder.factors, gauge)
+        keep = connected(builder.factors, gauge)
         factors = [f for f in builder.factors if all(k in keep for k in f.keys)]
         initial = {
             k: result.estimate.get(k, v) for k, v in builder.initial_values().items() if k in keep
@@ -430,7 +413,7 @@ def run_batch(
     params = station_params(config)
     clock = time.perf_counter()
     gauge = pose_key(dataset.robots[0], 0)
-    dropped = sorted(set(builder.initial_values()) - _connected(builder.factors, gauge))
+    dropped = sorted(set(builder.initial_values()) - connected(builder.factors, gauge))
     searched = _search_stages(prepared, builder, params, progress)
     give_back_memory()  # the search threads' working sets, freed with the stages' maps
     factors, result = searched.factors, searched.result

@@ -41,9 +41,9 @@ from estimation.posegraph.graph import (
     GraphSettings,
     Increment,
     RobustKernel,
-    check_constrained,
 )
 from estimation.posegraph.gtsam_factors import to_gtsam_graph, to_gtsam_values
+from estimation.posegraph.structure import check_constrained
 from sensors.atomic import atomic_path
 from sensors.geometry import se2
 

@@ -263,18 +263,18 @@ def test_three_robots_standing_symmetric_are_told_apart_by_the_closure_of_their_
     assert _pair(*ours, drifted, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
     thirds = [[a_sees_c, a_sees_b]]
     assert _pair(*ours, drifted, SETTINGS, ([None], [None]), thirds) == (b_sees_c, c_sees_b)
-    whole = {pair for pair, level in _closing(*ours, thirds, SETTINGS).items() if level == 2}
+    whole = {pair for pair, c in _closing(*ours, thirds, SETTINGS).items() if c.level == 2}
     assert whole == {(1, 1)}
     # Measurement noise of the configured size keeps the closure.
     rng = np.random.default_rng(3)
     noisy = [[detection(x.range_m + rng.normal(0, 0.01), x.bearing_rad + rng.normal(0, 0.002))
               for x in seen_by] for seen_by in (*ours, thirds[0])]  # fmt: skip
-    assert _closing(noisy[0], noisy[1], [noisy[2]], SETTINGS)[1, 1] == 2
+    assert _closing(noisy[0], noisy[1], [noisy[2]], SETTINGS)[1, 1] == (2, True, True)
     # a's sweep misses c's beacon, or sees it 30 cm off: no whole triangle, but the b–a
     # observation and the pair put a's beacon where c saw it only with b's detection of c.
     off = detection(a_sees_c.range_m + 0.3, a_sees_c.bearing_rad)
     for third in ([a_sees_b], [off, a_sees_b]):
-        assert _closing(*ours, [third], SETTINGS) == {(1, 1): 1}
+        assert _closing(*ours, [third], SETTINGS) == {(1, 1): (1, True, True)}
         assert _pair(*ours, drifted, SETTINGS, ([None], [None]), [third])[0] is b_sees_c
     # c does not see a's beacon either: nothing closes, and the estimate chooses.
     assert _closing(ours[0], [c_sees_b], [[a_sees_b]], SETTINGS) == {}
@@ -282,7 +282,9 @@ def test_three_robots_standing_symmetric_are_told_apart_by_the_closure_of_their_
         b_sees_a
     )
     # The sighting by the third robot: a sees c's beacon where the b–a pair puts it.
-    assert _closing(ours[0], [c_sees_b], [[a_sees_c, a_sees_b]], SETTINGS) == {(1, 0): 1}
+    assert _closing(ours[0], [c_sees_b], [[a_sees_c, a_sees_b]], SETTINGS) == {
+        (1, 0): (1, True, False)
+    }
     assert _closing(*ours, [], SETTINGS) == {}
 
 
@@ -299,8 +301,31 @@ def test_a_one_way_sighting_tells_the_partner_from_a_third_robot_at_the_same_dis
     towards_a = ((b_sees_a.range_m, b_sees_a.bearing_rad), (c_sees_b.range_m, c_sees_b.bearing_rad))
     seen = [b_sees_a, b_sees_c], [c_sees_a, c_sees_b]
     assert _pair(*seen, towards_a, SETTINGS) == (b_sees_a, c_sees_b)  # without a's sweep
-    assert _closing(*seen, [[a_sees_b]], SETTINGS) == {(1, 1): 1}
+    assert _closing(*seen, [[a_sees_b]], SETTINGS) == {(1, 1): (1, True, True)}
     assert _pair(*seen, towards_a, SETTINGS, ([None], [None]), [[a_sees_b]]) == (b_sees_c, c_sees_b)
+
+
+def test_a_sighting_that_tests_one_detection_does_not_clear_the_other() -> None:
+    """Generated building 402, the dwell of event 136 (reference c, mapper a), as recorded:
+    three robots 2.2 m apart. a saw one beacon, b's (2.2167 m / 0.4934 rad), and not c's; c saw
+    b's (2.2133 / −0.5265) and a's (2.2176 / 0.4163); b saw a's (2.1832 / −0.6534) and c's
+    (2.2513 / 0.2817). Every pairing agrees in s1/s2. b's detection of a's beacon claims a's
+    only detection for b, and the estimate places b's beacon nearer it than c's; b's sighting
+    of a's beacon, through the b–c observation, tests only c's detection of a. Taken, the pair
+    was 35 cm and 61° off, and the mission ended in four of twelve rooms."""
+    a_sees = [detection(2.2167, 0.4934, 0.879)]
+    c_sees = [detection(2.2133, -0.5265, 0.915), detection(2.2176, 0.4163, 0.921)]
+    b_sees = [detection(2.1832, -0.6534, 0.888), detection(2.2513, 0.2817, 0.904)]
+    predicted = ((1.3274, 2.0396), (1.6240, 0.7830))  # c from a, a from c, drifted
+    others = ([(1.0268, -0.5203)], [(2.4007, 0.9154)])  # b's beacon from a, from c
+    closing = _closing(a_sees, c_sees, [b_sees], SETTINGS)
+    assert closing[0, 1] == (1, False, True)  # c's true detection of a is tested, a's is not
+    assert _pair(a_sees, c_sees, predicted, SETTINGS, others, [b_sees]) == (None, None)
+    # Had a seen c's beacon too (where the a–b and b–c observations place it), the whole
+    # triangle closes and the true pair is taken.
+    a_sees_c = detection(2.2216, -0.4460)
+    a_truth, c_truth = _pair([a_sees_c, *a_sees], c_sees, predicted, SETTINGS, others, [b_sees])
+    assert (a_truth, c_truth) == (a_sees_c, c_sees[1])
 
 
 def test_a_beacon_seen_where_a_robot_that_stood_still_was_observed_is_that_robots() -> None:

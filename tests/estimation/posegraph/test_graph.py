@@ -15,13 +15,13 @@ from estimation.posegraph.graph import (
     FactorSpec,
     GraphBuilder,
     GraphSettings,
-    check_constrained,
     mutual_between,
     odometry_covariance,
 )
 from estimation.posegraph.gtsam_factors import to_gtsam_factor, to_gtsam_values
 from estimation.posegraph.keys import key_label, pose_key, split_key
 from estimation.posegraph.mutual import localize_mutual
+from estimation.posegraph.structure import check_constrained
 from estimation.posegraph.synthetic import leapfrog, mutual_measurements, search_pdf, visible
 from sensors.geometry import se2
 
@@ -295,31 +295,6 @@ def test_settings_are_validated() -> None:
         GraphSettings(prediction_gate_probability=1.0)
 
 
-def test_unconstrained_robot_is_named() -> None:
-    builder, _, _ = two_robots()
-    builder.add(Move("b", 1, (1.0, 0.0, 0.0)))
-    factors = list(builder.factors)
-    keys = [*builder.guesses, pose_key("c", 0), pose_key("c", 1), pose_key("c", 2)]
-    factors += [
-        FactorSpec(
-            "odometry",
-            (pose_key("c", i), pose_key("c", i + 1)),
-            np.array([1.0, 0, 0]),
-            np.eye(3) * 0.01,
-            9,
-        )
-        for i in range(2)
-    ]
-    with pytest.raises(EstimationError, match=r"unconstrained: robot c \(3 poses, c0…c2\)"):
-        check_constrained(factors, keys)
-    # Without the mutual observation, b floats too.
-    no_mutual = [f for f in builder.factors if f.kind != "mutual"]
-    with pytest.raises(EstimationError, match=r"robot b \(2 poses, b0…b1\)"):
-        check_constrained(no_mutual, builder.guesses)
-    with pytest.raises(EstimationError, match="refers to c5, not in values"):
-        check_constrained([FactorSpec("prior", (pose_key("c", 5),), np.zeros(3), np.eye(3), 0)], [])
-
-
 # -- the gate against distractors ----------------------------------------------------------------
 
 
@@ -390,6 +365,42 @@ def test_prediction_gate_catches_what_the_separation_check_cannot() -> None:
     assert increment.rejection.reason.startswith("prediction gate: Mahalanobis²")
     right = builder.add(Observe(("a", 0), ("b", 1), *mutual_measurements(T_a, T_b1, S)))
     assert right.rejection is None
+
+
+def test_prediction_gate_takes_the_tightest_chain_through_a_third_robot() -> None:
+    """Generated building 402 in shape: a and c last saw each other before long drives with
+    many turns, so their own fix predicts their relative heading to about 20°; b has just seen
+    both. An observation of c 50° off the truth (s1 = s2 kept) passes the pair's own prediction
+    and not the one through b; the true one passes both."""
+    T_a0, T_c0 = np.array([0.0, 0.0, 0.0]), np.array([2.2, 0.3, 3.0])
+    T_a1, T_c1 = np.array([4.0, 3.0, 1.2]), np.array([5.5, 5.0, -2.0])
+    T_b0 = np.array([6.0, 2.5, 2.4])
+    wrong = se2.compose(T_c1, np.array([0.0, 0.0, math.radians(50.0)]))
+
+    def mission(with_b: bool) -> GraphBuilder:
+        builder = GraphBuilder(S)
+        builder.add(Start("a", 0, tuple(T_a0)))  # type: ignore[arg-type]
+        builder.add(Observe(("a", 0), ("c", 0), *mutual_measurements(T_a0, T_c0, S)))
+        builder.add(Move("a", 1, tuple(se2.between(T_a0, T_a1)), motion=(6.0, 3.0)))
+        builder.add(Move("c", 1, tuple(se2.between(T_c0, T_c1)), motion=(8.5, 8.0)))
+        if with_b:
+            builder.add(Observe(("a", 1), ("b", 0), *mutual_measurements(T_a1, T_b0, S)))
+            builder.add(Observe(("b", 0), ("c", 1), *mutual_measurements(T_b0, T_c1, S)))
+        return builder
+
+    false = Observe(("a", 1), ("c", 1), *mutual_measurements(T_a1, wrong, S))
+    assert mission(with_b=False).add(false).rejection is None  # 50° is 2.4 σ of 21°
+    rejected = mission(with_b=True).add(false).rejection
+    assert rejected is not None
+    assert rejected.reason.startswith("prediction gate")
+    # The prediction is the chain through b (its two fresh fixes), not the pair's drives.
+    builder = mission(with_b=True)
+    predicted = builder._predict("a", 1, "c", 1)
+    assert predicted is not None
+    np.testing.assert_allclose(predicted[0], se2.between(T_a1, T_c1), atol=1e-6)
+    assert math.sqrt(predicted[1][2, 2]) < math.radians(1.0)
+    true = Observe(("a", 1), ("c", 1), *mutual_measurements(T_a1, T_c1, S))
+    assert builder.add(true).rejection is None
 
 
 def test_leapfrog_stream_builds_a_consistent_graph() -> None:
