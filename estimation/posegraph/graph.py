@@ -544,13 +544,11 @@ class GraphBuilder:
         a and c had last seen each other before 6 and 8.5 m of driving, 16° of heading apart
         that way, and a false observation 52° off passed; through b, which had just seen
         both, it was 10°)."""
-        best = None
+        best, least = None, math.inf
         for path in [(ra, rc), *((ra, rb, rc) for rb in self._latest if rb not in (ra, rc))]:
             predicted = self._through(path, ia, ic)
-            if predicted is not None and (
-                best is None or np.linalg.det(predicted[1]) < np.linalg.det(best[1])
-            ):
-                best = predicted
+            if predicted is not None and (det := float(np.linalg.det(predicted[1]))) < least:
+                best, least = predicted, det
         return best
 
     def _through(
